@@ -1,0 +1,5 @@
+import sys
+
+from beadsight.cli import main
+
+sys.exit(main())

@@ -1,0 +1,441 @@
+"""The BeadSight dataset (HDF5): reading, writing, and reference-file import.
+
+See docs/data-format.md for the layout. :func:`open_dataset` reads this project's
+files and the reference processed files alike and presents them through one
+:class:`Dataset` object (forces in newtons, positions in mm, float64 timestamps,
+press segmentation). :class:`DatasetWriter` writes incrementally to a ``.partial``
+file that is renamed into place on :meth:`DatasetWriter.close`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from beadsight import __version__
+from beadsight.config import ContactThresholds, SensorGeometry
+from beadsight.data.presses import segment_presses
+from beadsight.geometry import force_to_newtons
+
+FORMAT = "beadsight-dataset"
+FORMAT_VERSION = 1
+
+
+class DatasetError(ValueError):
+    """A dataset file is missing, corrupt, foreign, or inconsistent; the message names it."""
+
+
+@dataclass
+class Dataset:
+    """An open dataset. Arrays are loaded; ``frames`` stays on disk (h5py dataset).
+
+    frames: (N, H, W, 3) uint8 in ``channel_order`` ("RGB" or "BGR").
+    force_n: (N,) float64 N; position_mm: (N, 2) float64 mm (printer frame);
+    valid: (N,) bool; timestamp_s: (N,) float64 s (unix); contact: (N,) bool;
+    press_id: (N,) int32 press cycle of each frame (-1 if none); presses: (P, 2)
+    ``[start, stop)`` contact ranges.
+    """
+
+    path: Path
+    frames: h5py.Dataset
+    channel_order: str
+    force_n: np.ndarray
+    position_mm: np.ndarray
+    valid: np.ndarray
+    timestamp_s: np.ndarray
+    contact: np.ndarray
+    press_id: np.ndarray
+    presses: np.ndarray
+    geometry: SensorGeometry
+    fps: float
+    pixel_mean: np.ndarray | None  # (3,) in channel_order, 0..255
+    pixel_std: np.ndarray | None
+    provenance: dict[str, Any]
+    is_reference: bool
+    _file: h5py.File
+
+    def __len__(self) -> int:
+        return len(self.force_n)
+
+    @property
+    def num_presses(self) -> int:
+        return len(self.presses)
+
+    @property
+    def image_size(self) -> int:
+        return int(self.frames.shape[1])
+
+    def read_frames(self, start: int, stop: int) -> np.ndarray:
+        """Frames ``[start, stop)`` as (n, H, W, 3) uint8 **RGB**."""
+        block = self.frames[start:stop]
+        return block[..., ::-1].copy() if self.channel_order == "BGR" else block
+
+    def read_frames_at(self, index: np.ndarray) -> np.ndarray:
+        """Frames at sorted or unsorted indices as (n, H, W, 3) uint8 RGB."""
+        index = np.asarray(index)
+        order = np.argsort(index)
+        block = np.empty((len(index), *self.frames.shape[1:]), dtype=np.uint8)
+        block[order] = self.frames[index[order]]
+        return block[..., ::-1].copy() if self.channel_order == "BGR" else block
+
+    def rgb_pixel_stats(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-channel mean/std in RGB order (computed from a frame sample if not stored)."""
+        if self.pixel_mean is not None and self.pixel_std is not None:
+            mean, std = self.pixel_mean, self.pixel_std
+        else:
+            idx = np.unique(np.linspace(0, len(self) - 1, min(len(self), 256)).astype(int))
+            sample = self.frames[idx].reshape(-1, 3).astype(np.float64)
+            mean, std = sample.mean(0), sample.std(0)
+        if self.channel_order == "BGR":
+            mean, std = mean[::-1], std[::-1]
+        return np.asarray(mean, np.float64).copy(), np.maximum(np.asarray(std, np.float64), 1e-3)
+
+    def require_presses(self) -> None:
+        if self.num_presses == 0:
+            raise DatasetError(
+                f"{self.path}: no presses found (force never reaches contact while frames are "
+                "valid); a dataset for training or evaluation needs at least one press"
+            )
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> Dataset:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# --- reading ------------------------------------------------------------------------
+def _get(f: h5py.File, path: Path, names: tuple[str, ...], expected: str) -> h5py.Dataset:
+    for name in names:
+        if name in f:
+            obj = f[name]
+            if not isinstance(obj, h5py.Dataset):
+                raise DatasetError(f"{path}: '{name}' is a group; expected a dataset of {expected}")
+            return obj
+    raise DatasetError(f"{path}: missing dataset '{names[0]}' (expected {expected})")
+
+
+def _attr_json(f: h5py.File, key: str, default: Any) -> Any:
+    if key not in f.attrs:
+        return default
+    value = f.attrs[key]
+    if isinstance(value, bytes):
+        value = value.decode()
+    return json.loads(value) if isinstance(value, str) else value
+
+
+def _reference_geometry(f: h5py.File, image_size: int) -> SensorGeometry:
+    g = SensorGeometry(image_size_px=image_size)
+    kwargs = g.to_dict()
+    if "sensor_size" in f.attrs:
+        kwargs["sensor_size_mm"] = float(np.asarray(f.attrs["sensor_size"]).reshape(-1)[0])
+    if "contact_radius" in f.attrs:
+        kwargs["finger_radius_mm"] = float(np.asarray(f.attrs["contact_radius"]).reshape(-1)[0])
+    if "radius" in f.attrs:
+        kwargs["press_range_mm"] = float(np.asarray(f.attrs["radius"]).reshape(-1)[0])
+    return SensorGeometry.from_dict(kwargs)
+
+
+def open_dataset(path: str | Path, thresholds: ContactThresholds = ContactThresholds()) -> Dataset:
+    """Open a beadsight dataset or a reference processed HDF5 file for reading."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: dataset file not found")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise DatasetError(
+            f"{path}: not a readable HDF5 file ({e}); the file may be truncated or corrupt"
+        ) from None
+    try:
+        return _read(f, path, thresholds)
+    except DatasetError:
+        f.close()
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as e:
+        f.close()
+        raise DatasetError(f"{path}: unreadable dataset ({type(e).__name__}: {e})") from None
+
+
+def _read(f: h5py.File, path: Path, thresholds: ContactThresholds) -> Dataset:
+    fmt = f.attrs.get("format")
+    is_reference = fmt is None and "images" in f
+    if fmt is None and not is_reference:
+        raise DatasetError(
+            f"{path}: not a BeadSight dataset: no 'format' attribute and no 'images' dataset "
+            f"(found: {sorted(f.keys())[:8]})"
+        )
+    if fmt is not None and (fmt.decode() if isinstance(fmt, bytes) else fmt) != FORMAT:
+        raise DatasetError(f"{path}: attribute 'format' is {fmt!r}, expected {FORMAT!r}")
+    if not is_reference and int(f.attrs.get("format_version", 0)) > FORMAT_VERSION:
+        raise DatasetError(
+            f"{path}: format_version {f.attrs['format_version']} is newer than this beadsight "
+            f"reads ({FORMAT_VERSION}); upgrade beadsight"
+        )
+    frames = _get(
+        f, path, ("images",) if is_reference else ("frames",), "(N, H, W, 3) uint8 frames"
+    )
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[1] != frames.shape[2]:
+        raise DatasetError(
+            f"{path}: '{frames.name[1:]}' has shape {frames.shape}; expected (N, S, S, 3)"
+        )
+    if frames.dtype != np.uint8:
+        raise DatasetError(f"{path}: '{frames.name[1:]}' has dtype {frames.dtype}; expected uint8")
+    n = frames.shape[0]
+
+    def load(names: tuple[str, ...], expected: str, shape: tuple[int, ...]) -> np.ndarray:
+        ds = _get(f, path, names, expected)
+        if ds.shape != shape:
+            raise DatasetError(
+                f"{path}: '{ds.name[1:]}' has shape {ds.shape}; expected {shape} ({expected})"
+            )
+        return ds[()]
+
+    if is_reference:
+        unit = f.attrs.get("force_unit", "g")
+        unit = unit.decode() if isinstance(unit, bytes) else str(unit)
+        raw_force = load(("forces",), "(N,) force readings", (n,))
+        force = force_to_newtons(raw_force.astype(np.float64), unit)
+        position = load(("position",), "(N, 2) mm", (n, 2)).astype(np.float64)
+        valid = load(("valid",), "(N,) bool", (n,)).astype(bool)
+        timestamp = load(("time",), "(N,) unix seconds", (n,)).astype(np.float64)
+        channel_order = "BGR"
+        geometry = _reference_geometry(f, frames.shape[1])
+        fps = float(np.asarray(f.attrs.get("fps", 30.0)).reshape(-1)[0])
+        provenance = {"source": "reference", "file": str(path)}
+        mean = f.attrs.get("pixel_mean")
+        std = f.attrs.get("pixel_std")
+    else:
+        force_ds = _get(f, path, ("force",), "(N,) float64 force")
+        unit = force_ds.attrs.get("unit", "N")
+        force = force_to_newtons(
+            load(("force",), "(N,) force", (n,)).astype(np.float64),
+            unit.decode() if isinstance(unit, bytes) else unit,
+        )
+        position = load(("position",), "(N, 2) float64 mm", (n, 2)).astype(np.float64)
+        valid = load(("valid",), "(N,) bool", (n,)).astype(bool)
+        timestamp = load(("timestamp",), "(N,) float64 unix seconds", (n,)).astype(np.float64)
+        order = f["frames"].attrs.get("channel_order", "RGB")
+        channel_order = order.decode() if isinstance(order, bytes) else str(order)
+        if channel_order not in ("RGB", "BGR"):
+            raise DatasetError(
+                f"{path}: frames attribute 'channel_order' is {channel_order!r}; expected RGB or BGR"
+            )
+        try:
+            geometry = SensorGeometry.from_dict(_attr_json(f, "geometry", {}))
+        except (ValueError, TypeError) as e:
+            raise DatasetError(f"{path}: attribute 'geometry': {e}") from None
+        if geometry.image_size_px != frames.shape[1]:
+            raise DatasetError(
+                f"{path}: attribute 'geometry' says image_size_px={geometry.image_size_px} but "
+                f"frames are {frames.shape[1]} px"
+            )
+        fps = float(f.attrs.get("fps", 30.0))
+        provenance = _attr_json(f, "provenance", {})
+        mean = f.attrs.get("pixel_mean")
+        std = f.attrs.get("pixel_std")
+
+    bad = np.flatnonzero(valid & ~np.isfinite(force))
+    if len(bad):
+        raise DatasetError(
+            f"{path}: field 'force' has {len(bad)} NaN/inf values at valid frames (first at frame "
+            f"{bad[0]}); expected finite newtons, or mark those frames invalid"
+        )
+    bad = np.flatnonzero(valid & ~np.isfinite(position).all(axis=1))
+    if len(bad):
+        raise DatasetError(
+            f"{path}: field 'position' has non-finite values at valid frames (first at frame {bad[0]})"
+        )
+    contact, press_id, presses = segment_presses(force, valid, position, thresholds)
+    return Dataset(
+        path=path,
+        frames=frames,
+        channel_order=channel_order,
+        force_n=force,
+        position_mm=position,
+        valid=valid,
+        timestamp_s=timestamp,
+        contact=contact,
+        press_id=press_id,
+        presses=presses,
+        geometry=geometry,
+        fps=fps,
+        pixel_mean=None if mean is None else np.asarray(mean, np.float64).reshape(3),
+        pixel_std=None if std is None else np.asarray(std, np.float64).reshape(3),
+        provenance=provenance,
+        is_reference=is_reference,
+        _file=f,
+    )
+
+
+# --- writing ------------------------------------------------------------------------
+class DatasetWriter:
+    """Write a dataset incrementally; safe against crashes mid-write.
+
+    Data goes to ``<path>.partial`` (flushed after every :meth:`append`, so what
+    was appended stays readable after a crash); :meth:`close` adds the press
+    segmentation and pixel statistics and renames the file to ``path``.
+
+    Usage::
+
+        with DatasetWriter(path, geometry, fps=30, provenance={...}) as w:
+            w.append(frames_rgb, force_n, position_mm, valid, timestamp_s)
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        geometry: SensorGeometry,
+        *,
+        channel_order: str = "RGB",
+        fps: float = 30.0,
+        provenance: dict[str, Any] | None = None,
+        compression: str | None = None,
+        thresholds: ContactThresholds = ContactThresholds(),
+    ):
+        if channel_order not in ("RGB", "BGR"):
+            raise ValueError(f"channel_order must be RGB or BGR, got {channel_order!r}")
+        self.path = Path(path)
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.geometry = geometry
+        self.thresholds = thresholds
+        s = geometry.image_size_px
+        self._f = h5py.File(self.partial, "w")
+        self._f.attrs.update(
+            {
+                "format": FORMAT,
+                "format_version": FORMAT_VERSION,
+                "fps": float(fps),
+                "geometry": geometry.to_json(),
+                "thresholds": thresholds.to_json(),
+                "provenance": json.dumps(
+                    {
+                        "created_unix": time.time(),
+                        "beadsight_version": __version__,
+                        **(provenance or {}),
+                    },
+                    default=str,
+                ),
+            }
+        )
+        frames = self._f.create_dataset(
+            "frames",
+            (0, s, s, 3),
+            np.uint8,
+            maxshape=(None, s, s, 3),
+            chunks=(1, s, s, 3),
+            compression=compression,
+        )
+        frames.attrs["channel_order"] = channel_order
+        spec = {
+            "force": ((), np.float64, "N"),
+            "position": ((2,), np.float64, "mm"),
+            "valid": ((), bool, ""),
+            "timestamp": ((), np.float64, "s (unix)"),
+        }
+        for name, (shape, dtype, unit) in spec.items():
+            ds = self._f.create_dataset(
+                name, (0, *shape), dtype, maxshape=(None, *shape), chunks=(4096, *shape)
+            )
+            if unit:
+                ds.attrs["unit"] = unit
+        self._sum = np.zeros(3)
+        self._sumsq = np.zeros(3)
+        self._count = 0
+
+    def __len__(self) -> int:
+        return int(self._f["force"].shape[0])
+
+    def append(self, frames, force_n, position_mm, valid, timestamp_s) -> None:
+        """frames: (n, S, S, 3) uint8; force_n: (n,) N; position_mm: (n, 2); valid: (n,) bool;
+        timestamp_s: (n,) float64 unix seconds."""
+        frames = np.asarray(frames)
+        n = len(frames)
+        s = self.geometry.image_size_px
+        if frames.shape[1:] != (s, s, 3) or frames.dtype != np.uint8:
+            raise ValueError(
+                f"{self.path}: frames must be (n, {s}, {s}, 3) uint8, got {frames.shape} {frames.dtype}"
+            )
+        cols = {
+            "force": np.asarray(force_n, np.float64).reshape(n),
+            "position": np.asarray(position_mm, np.float64).reshape(n, 2),
+            "valid": np.asarray(valid, bool).reshape(n),
+            "timestamp": np.asarray(timestamp_s, np.float64).reshape(n),
+        }
+        start = len(self)
+        for name, values in {"frames": frames, **cols}.items():
+            ds = self._f[name]
+            ds.resize(start + n, axis=0)
+            ds[start:] = values
+        pixels = frames.reshape(-1, 3).astype(np.float64)
+        self._sum += pixels.sum(0)
+        self._sumsq += (pixels * pixels).sum(0)
+        self._count += len(pixels)
+        self._f.flush()
+
+    def close(self) -> Path:
+        """Finish the file (presses, pixel stats) and move it into place. Returns the path."""
+        if not self._f.id.valid:
+            return self.path
+        f = self._f
+        force, valid, position = f["force"][()], f["valid"][()], f["position"][()]
+        contact, press_id, presses = segment_presses(force, valid, position, self.thresholds)
+        f.create_dataset("contact", data=contact)
+        f.create_dataset("press_id", data=press_id)
+        f.create_dataset("presses", data=presses.reshape(-1, 2))
+        if self._count:
+            mean = self._sum / self._count
+            f.attrs["pixel_mean"] = mean
+            f.attrs["pixel_std"] = np.sqrt(np.maximum(self._sumsq / self._count - mean**2, 0.0))
+        f.close()
+        os.replace(self.partial, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Close without finishing; the ``.partial`` file stays for inspection."""
+        if self._f.id.valid:
+            self._f.close()
+
+    def __enter__(self) -> DatasetWriter:
+        return self
+
+    def __exit__(self, exc_type, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def import_reference(src: str | Path, dst: str | Path, chunk: int = 256) -> Path:
+    """Convert a reference processed HDF5 file to this project's format (frames -> RGB)."""
+    with open_dataset(src) as ds:
+        if not ds.is_reference:
+            raise DatasetError(f"{src}: already a beadsight dataset; nothing to import")
+        fps = ds.fps
+        with DatasetWriter(
+            dst,
+            ds.geometry,
+            fps=fps,
+            provenance={"source": "reference-import", "imported_from": str(src)},
+        ) as w:
+            for i in range(0, len(ds), chunk):
+                j = min(i + chunk, len(ds))
+                w.append(
+                    ds.read_frames(i, j),
+                    ds.force_n[i:j],
+                    ds.position_mm[i:j],
+                    ds.valid[i:j],
+                    ds.timestamp_s[i:j],
+                )
+    return Path(dst)

@@ -1,0 +1,154 @@
+"""The BeadSight U-Net, and the module that wraps it from uint8 frames to kPa.
+
+``UNet`` is the reference network; its parameter names match the reference
+state_dicts (``C1.layer.0.weight`` ... ``pred.bias``). ``FramesToPressure`` adds
+the input normalisation and output scale as buffers, so a single module maps
+``(B, T, H, W, 3)`` uint8 RGB frames to ``(B, H, W)`` kPa and exports as one graph.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from beadsight.config import ModelConfig
+
+
+class ConvBlock(nn.Module):
+    """conv3x3 -> InstanceNorm -> ELU -> Dropout, twice."""
+
+    def __init__(self, c_in: int, c_out: int, dropout: float):
+        super().__init__()
+        self.layer = nn.Sequential(
+            nn.Conv2d(c_in, c_out, 3, padding=1),  # layer.0
+            nn.InstanceNorm2d(c_out),
+            nn.ELU(),
+            nn.Dropout(dropout),
+            nn.Conv2d(c_out, c_out, 3, padding=1),  # layer.4
+            nn.InstanceNorm2d(c_out),
+            nn.ELU(),
+            nn.Dropout(dropout),
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.layer(x)
+
+
+class DownBlock(nn.Module):
+    """Strided conv3x3 (C -> C) halving H and W, then LeakyReLU; no norm."""
+
+    def __init__(self, c: int):
+        super().__init__()
+        self.Down = nn.Sequential(nn.Conv2d(c, c, 3, stride=2, padding=1), nn.LeakyReLU(0.01))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.Down(x)
+
+
+class UpBlock(nn.Module):
+    """Nearest x2 upsampling, conv (C -> C/2), then concatenate [up, skip]."""
+
+    def __init__(self, c_in: int, kernel: int):
+        super().__init__()
+        self.Up = nn.Conv2d(c_in, c_in // 2, kernel, padding=kernel // 2)
+
+    def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        up = self.Up(F.interpolate(x, scale_factor=2.0, mode="nearest"))  # (B, C/2, 2H, 2W)
+        return torch.cat([up, skip], dim=1)  # (B, C, 2H, 2W)
+
+
+class UNet(nn.Module):
+    """Reference U-Net: (B, 3T, H, W) normalised frames -> (B, 1, H, W) >= 0.
+
+    H and W must be divisible by 8. The output is in units of the training
+    target's scale (``FramesToPressure`` multiplies it back to kPa).
+    """
+
+    def __init__(self, config: ModelConfig = ModelConfig()):
+        super().__init__()
+        self.config = config
+        w, p = config.width, config.dropout
+        self.C1 = ConvBlock(3 * config.window, w, p)
+        self.D1 = DownBlock(w)
+        self.C2 = ConvBlock(w, 2 * w, p)
+        self.D2 = DownBlock(2 * w)
+        self.C3 = ConvBlock(2 * w, 4 * w, p)
+        self.D3 = DownBlock(4 * w)
+        self.C4 = ConvBlock(4 * w, 8 * w, p)
+        self.U2 = UpBlock(8 * w, config.up_kernel)
+        self.C7 = ConvBlock(8 * w, 4 * w, p)
+        self.U3 = UpBlock(4 * w, config.up_kernel)
+        self.C8 = ConvBlock(4 * w, 2 * w, p)
+        self.U4 = UpBlock(2 * w, config.up_kernel)
+        self.C9 = ConvBlock(2 * w, w, 0.0)
+        self.pred = nn.Conv2d(w, 1, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        r1 = self.C1(x)  # (B, w, H, W)
+        r2 = self.C2(self.D1(r1))  # (B, 2w, H/2, W/2)
+        r3 = self.C3(self.D2(r2))  # (B, 4w, H/4, W/4)
+        y = self.C4(self.D3(r3))  # (B, 8w, H/8, W/8)
+        y = self.C7(self.U2(y, r3))  # (B, 4w, H/4, W/4)
+        y = self.C8(self.U3(y, r2))  # (B, 2w, H/2, W/2)
+        y = self.C9(self.U4(y, r1))  # (B, w, H, W)
+        return F.relu(self.pred(y))  # (B, 1, H, W)
+
+
+def infer_model_config(state_dict: dict[str, torch.Tensor], dropout: float = 0.2) -> ModelConfig:
+    """Read window, width and up-conv kernel from a U-Net state_dict's tensor shapes."""
+    try:
+        first = state_dict["C1.layer.0.weight"]  # (w, 3T, 3, 3)
+        up = state_dict["U2.Up.weight"]  # (4w, 8w, k, k)
+    except KeyError as e:
+        raise ValueError(f"not a BeadSight U-Net state_dict: missing {e.args[0]!r}") from None
+    if first.shape[1] % 3:
+        raise ValueError(f"C1.layer.0.weight has {first.shape[1]} input channels; expected 3*T")
+    return ModelConfig(
+        window=first.shape[1] // 3, width=first.shape[0], up_kernel=up.shape[-1], dropout=dropout
+    )
+
+
+class FramesToPressure(nn.Module):
+    """uint8 RGB frame windows -> kPa maps, with normalisation inside the module.
+
+    frames: (B, T, H, W, 3) uint8 RGB, oldest frame first.
+    returns: (B, H, W) float32 kPa.
+
+    ``channel_order`` is the order the network was trained on ("RGB" or "BGR");
+    ``pixel_mean``/``pixel_std`` are per-channel statistics in that order, in
+    0..255 units; ``output_scale_kpa`` converts the network's output to kPa.
+    """
+
+    def __init__(
+        self,
+        net: UNet,
+        pixel_mean: list[float] | tuple[float, ...],
+        pixel_std: list[float] | tuple[float, ...],
+        channel_order: str = "RGB",
+        output_scale_kpa: float = 1.0,
+    ):
+        super().__init__()
+        if channel_order not in ("RGB", "BGR"):
+            raise ValueError(f"channel_order must be 'RGB' or 'BGR', got {channel_order!r}")
+        self.net = net
+        self.channel_order = channel_order
+        perm = [2, 1, 0] if channel_order == "BGR" else [0, 1, 2]
+        self.register_buffer("channel_perm", torch.tensor(perm), persistent=False)
+        self.register_buffer("pixel_mean", torch.tensor(pixel_mean, dtype=torch.float32))
+        self.register_buffer("pixel_std", torch.tensor(pixel_std, dtype=torch.float32))
+        self.register_buffer("output_scale_kpa", torch.tensor(float(output_scale_kpa)))
+
+    @property
+    def window(self) -> int:
+        return self.net.config.window
+
+    def normalize(self, frames: torch.Tensor) -> torch.Tensor:
+        """(B, T, H, W, 3) uint8 RGB -> (B, 3T, H, W) float32, channel k = 3t + c."""
+        b, t, h, w, _ = frames.shape
+        x = frames.index_select(-1, self.channel_perm).to(torch.float32)
+        x = (x - self.pixel_mean) / self.pixel_std  # (B, T, H, W, 3)
+        return x.permute(0, 1, 4, 2, 3).reshape(b, t * 3, h, w)
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        return self.net(self.normalize(frames))[:, 0] * self.output_scale_kpa  # (B, H, W)
