@@ -14,7 +14,7 @@ import sys
 
 from beadsight import __version__
 
-AREAS = ("data", "train", "evaluate", "sim", "rig", "live")  # modules under beadsight.cli, in help order
+AREAS = ("data", "train", "evaluate", "sim", "rig", "export", "live")  # modules under beadsight.cli, in help order
 
 
 class UserError(Exception):
