@@ -245,17 +245,17 @@ def read_checkpoint_file(path: str | Path) -> dict[str, Any]:
             obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises UnpicklingError/RuntimeError with long texts
         text = str(e)
-        if "weights_only" in text or "Unsupported global" in text or "not an allowed" in text:
-            first = next((ln.strip() for ln in text.splitlines() if "GLOBAL" in ln), "")
+        if "Weights only load failed" in text or "GLOBAL" in text:
+            lines = [ln.strip() for ln in text.splitlines()]
+            detail = next((ln for ln in lines if "GLOBAL" in ln or "Unsupported" in ln),
+                          "unsupported pickle content")
             raise UnsafeCheckpointError(
-                f"{path}: refused to load: the file's pickle asks to run code that is not a "
-                f"tensor, number, string or numpy array ({first or type(e).__name__}). Nothing "
-                "from it was executed. Only load checkpoints you trust, and convert them with "
-                "a trusted tool first."
+                f"{path}: refused to load: not a weights-only checkpoint ({detail}). Only tensors, numbers, strings and numpy arrays are read; "
+                "nothing from the file was executed. Convert checkpoints you trust with a "
+                "trusted tool first."
             ) from None
-        raise CheckpointError(
-            f"{path}: not a readable checkpoint ({type(e).__name__}: {text.splitlines()[0] if text else ''})"
-        ) from None
+        first = text.splitlines()[0] if text else ""
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {first})") from None
     if not isinstance(obj, dict):
         raise CheckpointError(f"{path}: expected a dict checkpoint, got {type(obj).__name__}")
     return obj
