@@ -120,3 +120,15 @@ def test_writer_rejects_wrong_frames(tmp_path):
     with DatasetWriter(tmp_path / "w.h5", SensorGeometry(image_size_px=16)) as w:
         with pytest.raises(ValueError, match=r"frames must be \(n, 16, 16, 3\) uint8"):
             w.append(np.zeros((2, 16, 16, 3), np.float32), [0, 0], np.zeros((2, 2)), [1, 1], [0, 1])
+
+
+def test_info_and_import_cli(tmp_path, capsys):
+    from beadsight.cli import main
+
+    write_reference_file(tmp_path / "ref.hdf5")
+    assert main(["import-reference", str(tmp_path / "ref.hdf5"), "--out", str(tmp_path / "o.h5")]) == 0
+    assert main(["info", str(tmp_path / "o.h5"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.splitlines()[-1])
+    assert summary["presses"] == 2 and summary["frames"] == 90 and summary["format"] == "beadsight"
+    assert main(["info", str(tmp_path / "missing.h5")]) == 1
+    assert "missing.h5: dataset file not found" in capsys.readouterr().err
