@@ -1,0 +1,109 @@
+"""``beadsight evaluate`` and ``beadsight predict``: argument parsing only."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from beadsight.evaluate import DEFAULT_BATCH_SIZE, SPLIT_CHOICES
+    from beadsight.predict import DEFAULT_BATCH_SIZE as PREDICT_BATCH_SIZE
+
+    p = subparsers.add_parser(
+        "evaluate",
+        help="metrics of a checkpoint on a dataset split, beside the paper's figures",
+        description="Run a checkpoint over a dataset split; write metrics.json, predictions.h5 "
+        "and PNG plots to --out and print the metrics beside the paper's.",
+    )
+    p.add_argument("--checkpoint", required=True, type=Path, help="checkpoint file (.pt)")
+    p.add_argument("--data", required=True, type=Path, help="dataset file (HDF5)")
+    p.add_argument(
+        "--split",
+        choices=SPLIT_CHOICES,
+        default="test",
+        help="presses to evaluate (test/val: the training run's split; default test)",
+    )
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--batch-size", type=int, default=DEFAULT_BATCH_SIZE)
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, mps, ...")
+    p.add_argument(
+        "--max-frames",
+        type=int,
+        default=None,
+        help="evaluate only N frames spread evenly over the split (a quick estimate)",
+    )
+    p.add_argument(
+        "--baselines",
+        action="store_true",
+        help="also score an all-zero map and the mean training label",
+    )
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument(
+        "--resize",
+        action="store_true",
+        help="resize frames to the checkpoint's image size if it differs from the dataset's "
+        "(for checkpoints trained with --image-size)",
+    )
+    p.set_defaults(func=run_evaluate)
+
+    p = subparsers.add_parser(
+        "predict",
+        help="pressure maps, force and centre of pressure for every frame of a recording",
+        description="Run a checkpoint over a dataset or a video file and write per-frame "
+        "pressure maps (kPa), total force (N), centre of pressure (mm) and timestamps to HDF5.",
+    )
+    p.add_argument("--checkpoint", required=True, type=Path, help="checkpoint file (.pt)")
+    p.add_argument("--input", required=True, type=Path, help="dataset (HDF5) or video file")
+    p.add_argument("--out", required=True, type=Path, help="output file (.h5)")
+    p.add_argument(
+        "--preprocess",
+        default="auto",
+        help="auto (default), none, reference, reference-linear, or a fisheye "
+        "calibration .json (video input only)",
+    )
+    p.add_argument("--batch-size", type=int, default=PREDICT_BATCH_SIZE)
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, mps, ...")
+    p.set_defaults(func=run_predict)
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    from beadsight.evaluate import evaluate
+    from beadsight.metrics import format_metrics_table
+
+    metrics = evaluate(
+        args.checkpoint,
+        args.data,
+        split=args.split,
+        out_dir=args.out,
+        batch_size=args.batch_size,
+        device=args.device,
+        max_frames=args.max_frames,
+        baselines=args.baselines,
+        plots=not args.no_plots,
+        resize=args.resize,
+    )
+    presses = metrics["presses"]
+    print(
+        f"{metrics['split']} split ({metrics['split_source']}): {metrics['frames']} frames of "
+        f"{presses} press{'es' if presses != 1 else ''}, {metrics['checkpoint']} on "
+        f"{metrics['dataset']}"
+    )
+    print(format_metrics_table(metrics, metrics.get("baselines")))
+    print(f"wrote {args.out}: " + ", ".join(metrics.get("files", {}).values()))
+    return 0
+
+
+def run_predict(args: argparse.Namespace) -> int:
+    from beadsight.predict import predict_recording, summarize_predictions
+
+    out = predict_recording(
+        args.checkpoint,
+        args.input,
+        args.out,
+        preprocess=args.preprocess,
+        batch_size=args.batch_size,
+        device=args.device,
+    )
+    print(summarize_predictions(out))
+    return 0

@@ -1,0 +1,166 @@
+"""Evaluation figures (PNG): example maps, the 4x4 region error map, force over time.
+
+Figures are drawn on matplotlib's Agg canvas directly (no pyplot, no global
+backend state), so they work headless and in threads.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from beadsight.config import SensorGeometry
+
+DPI = 110
+PANEL_IN = 2.6  # side of one map panel, inches
+PRESSURE_CMAP = "viridis"
+ERROR_CMAP = "magma"
+MIN_COLOUR_RANGE_KPA = 1e-3  # colour scale floor, so all-zero maps still draw
+
+
+def _new_figure(width_in: float, height_in: float) -> Figure:
+    # Fixed margins: matplotlib's constrained layout costs seconds per figure.
+    fig = Figure(figsize=(width_in, height_in), dpi=DPI)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=DPI)
+    return path
+
+
+def _extent_mm(geometry: SensorGeometry) -> list[float]:
+    """imshow extent in printer mm: column 0 is printer +X, row 0 is printer +Y."""
+    half = geometry.sensor_size_mm / 2
+    return [half, -half, -half, half]
+
+
+def plot_examples(
+    gt_kpa: np.ndarray,
+    pred_kpa: np.ndarray,
+    titles: Sequence[str],
+    geometry: SensorGeometry,
+    path: str | Path,
+) -> Path:
+    """True (top row) vs predicted (bottom row) maps with one shared colour scale and bar.
+
+    gt_kpa, pred_kpa: (K, H, W) kPa, K >= 1; titles: K strings. Returns ``path``.
+    """
+    gt_kpa, pred_kpa = np.asarray(gt_kpa), np.asarray(pred_kpa)
+    k = len(gt_kpa)
+    if k == 0 or gt_kpa.shape != pred_kpa.shape or len(titles) != k:
+        raise ValueError(
+            f"need K >= 1 matching maps and titles, got {gt_kpa.shape}, "
+            f"{pred_kpa.shape}, {len(titles)} titles"
+        )
+    vmax = max(float(gt_kpa.max()), float(pred_kpa.max()), MIN_COLOUR_RANGE_KPA)
+    fig = _new_figure(PANEL_IN * k + 1.0, PANEL_IN * 2 + 0.4)
+    axes = fig.subplots(2, k, squeeze=False)
+    fig.subplots_adjust(left=0.6 / (PANEL_IN * k + 1.0), right=0.97, bottom=0.1, top=0.93,
+                        wspace=0.3, hspace=0.3)  # fmt: skip
+    extent = _extent_mm(geometry)
+    image = None
+    for j in range(k):
+        for i, (maps, name) in enumerate(((gt_kpa, "true"), (pred_kpa, "predicted"))):
+            ax = axes[i, j]
+            image = ax.imshow(maps[j], cmap=PRESSURE_CMAP, vmin=0.0, vmax=vmax, extent=extent)
+            ax.set_title(f"{name}: {titles[j]}", fontsize=8)
+            ax.tick_params(labelsize=7)
+            if j == 0:
+                ax.set_ylabel("y (mm)", fontsize=8)
+            if i == 1:
+                ax.set_xlabel("x (mm)", fontsize=8)
+    fig.colorbar(image, ax=axes, shrink=0.8, fraction=0.3 / k, pad=0.02, label="pressure (kPa)")
+    return _save(fig, path)
+
+
+def plot_region_errors(
+    region_mae_kpa: Sequence[Sequence[float | None]],
+    region_frames: Sequence[Sequence[int]],
+    geometry: SensorGeometry,
+    path: str | Path,
+) -> Path:
+    """The grid of per-region MAE (kPa), annotated with values and frame counts.
+
+    Cells without frames (None) are grey. Orientation matches the pressure maps.
+    """
+    values = np.array(
+        [[np.nan if v is None else float(v) for v in row] for row in region_mae_kpa], float
+    )
+    counts = np.asarray(region_frames, dtype=np.int64)
+    grid = values.shape[0]
+    fig = _new_figure(4.8, 4.0)
+    ax = fig.subplots()
+    fig.subplots_adjust(left=0.14, right=0.95, bottom=0.12, top=0.92)
+    ax.set_facecolor("0.8")
+    finite = values[np.isfinite(values)]
+    vmax = max(float(finite.max()) if finite.size else 0.0, MIN_COLOUR_RANGE_KPA)
+    image = ax.imshow(
+        np.ma.masked_invalid(values),
+        cmap=ERROR_CMAP,
+        vmin=0.0,
+        vmax=vmax,
+        extent=_extent_mm(geometry),
+    )
+    cell_mm = geometry.sensor_size_mm / grid
+    half = geometry.sensor_size_mm / 2
+    for i in range(grid):
+        for j in range(grid):
+            x = half - (j + 0.5) * cell_mm
+            y = half - (i + 0.5) * cell_mm
+            text = "no frames" if not np.isfinite(values[i, j]) else f"{values[i, j]:.2f}"
+            ax.text(
+                x,
+                y,
+                f"{text}\nn={counts[i, j]}",
+                ha="center",
+                va="center",
+                fontsize=7,
+                color="black"
+                if not np.isfinite(values[i, j]) or values[i, j] > vmax / 2
+                else "white",
+            )
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(f"MAE by press location ({cell_mm:g} mm cells)", fontsize=9)
+    fig.colorbar(image, ax=ax, label="MAE (kPa)")
+    return _save(fig, path)
+
+
+@dataclass(frozen=True)
+class ForceTrace:
+    """One press: time (s from its first frame), true and predicted total force (N)."""
+
+    label: str
+    time_s: np.ndarray
+    force_gt_n: np.ndarray
+    force_pred_n: np.ndarray
+
+
+def plot_force_traces(traces: Sequence[ForceTrace], path: str | Path) -> Path:
+    """Total force over time for a few presses: ground truth vs prediction."""
+    if not traces:
+        raise ValueError("need at least one force trace")
+    fig = _new_figure(3.2 * len(traces) + 0.75, 3.0)
+    axes = fig.subplots(1, len(traces), squeeze=False)[0]
+    fig.subplots_adjust(left=0.75 / (3.2 * len(traces) + 0.75), right=0.98, bottom=0.17,
+                        top=0.9, wspace=0.25)  # fmt: skip
+    for ax, trace in zip(axes, traces, strict=True):
+        ax.plot(trace.time_s, trace.force_gt_n, color="black", label="true")
+        ax.plot(
+            trace.time_s, trace.force_pred_n, color="tab:red", linestyle="--", label="predicted"
+        )
+        ax.set_title(trace.label, fontsize=9)
+        ax.set_xlabel("time (s)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("total force (N)")
+    axes[0].legend(fontsize=8)
+    return _save(fig, path)

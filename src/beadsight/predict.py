@@ -1,0 +1,459 @@
+"""Run a pressure model over a whole recording (a dataset or a video file).
+
+:func:`predict_recording` streams frames through a ring buffer of the model's
+window (memory does not grow with the recording's length), predicts in batches
+and appends the results to an HDF5 file written under a temporary name and
+renamed into place at the end, so an interrupted run never leaves a truncated
+file where a finished one is expected.
+
+Output layout (``format = "beadsight-predictions"``), one row per input frame:
+
+=================  ===========  =======  ===============================================
+dataset            shape        dtype    content
+=================  ===========  =======  ===============================================
+``pressure_kpa``   (N, S, S)    float32  predicted pressure, kPa (gzip); zeros where
+                                         ``valid`` is False
+``force_n``        (N,)         float64  total force (integral of the map), N
+``cop_mm``         (N, 2)       float64  centre of pressure (x, y) mm, printer frame;
+                                         NaN exactly where ``has_pressure`` is False
+``has_pressure``   (N,)         bool     the map has some positive pressure
+``timestamp_s``    (N,)         float64  dataset timestamps (unix s), or video frame
+                                         times (s from the start of the video)
+``frame_index``    (N,)         int64    index of the frame in the input
+``valid``          (N,)         bool     False for the first T-1 frames (no full window)
+=================  ===========  =======  ===============================================
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from beadsight import __version__
+from beadsight.checkpoint import PressureModel, load_checkpoint
+from beadsight.data.dataset import open_dataset
+from beadsight.errors import BeadSightError
+from beadsight.geometry import centre_of_pressure_mm, total_force_n
+
+log = logging.getLogger(__name__)
+
+PREDICTIONS_FORMAT = "beadsight-predictions"
+PREDICTIONS_FORMAT_VERSION = 1
+PREPROCESS_MODES = ("auto", "none", "reference")
+H5_COMPRESSION = "gzip"
+H5_COMPRESSION_LEVEL = 1  # gzip level: ~2x faster than 4 on float maps, ~5 % larger
+DEFAULT_BATCH_SIZE = 8
+READ_CHUNK_FRAMES = 64  # frames read from a dataset at a time
+
+
+class PredictionError(BeadSightError):
+    """The input recording cannot be run through the model; the message says why."""
+
+
+# --- devices ------------------------------------------------------------------------
+def resolve_device(name: str | torch.device = "auto") -> torch.device:
+    """``"auto"`` -> CUDA if available, else MPS if available, else CPU; otherwise torch.device(name).
+
+    Raises BeadSightError naming the device if it is unknown or not available.
+    """
+    if isinstance(name, torch.device):
+        return name
+    if name == "auto":
+        if torch.cuda.is_available():
+            return torch.device("cuda")
+        mps = getattr(torch.backends, "mps", None)
+        return torch.device("mps" if mps is not None and mps.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as e:
+        raise BeadSightError(f"--device {name!r}: not a torch device ({e})") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise BeadSightError(f"--device {name!r}: CUDA is not available on this machine")
+    return device
+
+
+def as_model(checkpoint: PressureModel | str | Path, device: str | torch.device) -> PressureModel:
+    """A loaded model on ``device``: a PressureModel is moved, a path is loaded."""
+    model = checkpoint if isinstance(checkpoint, PressureModel) else load_checkpoint(checkpoint)
+    return model.to(resolve_device(device))
+
+
+# --- incremental HDF5 ---------------------------------------------------------------
+class IncrementalH5:
+    """Append rows to resizable HDF5 datasets in ``<path>.partial``; rename on finish.
+
+    specs: {name: (row_shape, dtype, compress)}; compressed datasets use gzip with
+    one row per chunk. Use as a context manager: an exception deletes the partial
+    file and leaves any existing ``path`` untouched.
+    """
+
+    def __init__(self, path: str | Path, specs: dict[str, tuple[tuple[int, ...], object, bool]]):
+        self.path = Path(path)
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.file = h5py.File(self.partial, "w")
+        self.rows = 0
+        for name, (row_shape, dtype, compress) in specs.items():
+            chunk_rows = 1 if compress else 4096
+            ds = self.file.create_dataset(
+                name,
+                (0, *row_shape),
+                dtype=dtype,
+                maxshape=(None, *row_shape),
+                chunks=(chunk_rows, *row_shape),
+                compression=H5_COMPRESSION if compress else None,
+                compression_opts=H5_COMPRESSION_LEVEL if compress else None,
+            )
+            ds.attrs["row_shape"] = json.dumps(list(row_shape))
+
+    def append(self, **columns: np.ndarray) -> None:
+        """Append n rows; every dataset must receive the same number of rows."""
+        lengths = {len(v) for v in columns.values()}
+        if len(lengths) != 1 or set(columns) != set(self.file.keys()):
+            raise ValueError(f"append needs one row count for all of {sorted(self.file.keys())}")
+        n = lengths.pop()
+        for name, values in columns.items():
+            ds = self.file[name]
+            ds.resize(self.rows + n, axis=0)
+            ds[self.rows :] = values
+        self.rows += n
+
+    def finish(self) -> Path:
+        self.file.close()
+        os.replace(self.partial, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        if self.file.id.valid:
+            self.file.close()
+        self.partial.unlink(missing_ok=True)
+
+    def __enter__(self) -> IncrementalH5:
+        return self
+
+    def __exit__(self, exc_type, *exc: object) -> None:
+        if exc_type is None:
+            self.finish()
+        else:
+            self.abort()
+
+
+# --- ring buffer --------------------------------------------------------------------
+class WindowBuffer:
+    """The last ``window - 1`` frames, so a stream of chunks becomes model windows.
+
+    push(frames (n, S, S, 3)) -> windows (m, T, S, S, 3) for the last m = n - k
+    frames of the chunk, where the first k frames of the whole stream (k < T)
+    lack a full window. Memory: T - 1 frames plus one chunk.
+    """
+
+    def __init__(self, window: int):
+        self.window = window
+        self.seen = 0
+        self._tail: np.ndarray | None = None
+
+    def push(self, frames: np.ndarray) -> tuple[np.ndarray, int]:
+        """Returns (windows, first): windows end at chunk frames ``first .. n-1``."""
+        t = self.window
+        full = frames if self._tail is None else np.concatenate([self._tail, frames])
+        n_prev = len(full) - len(frames)
+        first = min(max(t - 1 - self.seen, 0), len(frames))
+        self.seen += len(frames)
+        self._tail = full[max(len(full) - (t - 1), 0) :].copy() if t > 1 else full[:0].copy()
+        if first == len(frames):
+            return np.zeros((0, t, *frames.shape[1:]), frames.dtype), first
+        view = np.lib.stride_tricks.sliding_window_view(full, t, axis=0)  # (m, S, S, 3, T)
+        start = n_prev + first - (t - 1)
+        return np.moveaxis(view[start:], -1, 1), first
+
+
+# --- frame sources ------------------------------------------------------------------
+@dataclass
+class _Chunk:
+    frames: np.ndarray  # (n, S, S, 3) uint8 RGB at the model's size
+    timestamp_s: np.ndarray  # (n,) float64
+
+
+class _Source:
+    kind = ""
+    total: int | None = None
+    preprocess = "none"
+    fps = float("nan")
+
+    def chunks(self, size: int) -> Iterator[_Chunk]:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+class _DatasetSource(_Source):
+    kind = "dataset"
+
+    def __init__(self, path: Path, model: PressureModel, preprocess: str):
+        if preprocess not in ("auto", "none"):
+            raise PredictionError(
+                f"{path}: --preprocess {preprocess} applies to raw camera video; dataset frames "
+                "are already preprocessed (use auto or none)"
+            )
+        self.ds = open_dataset(path)
+        if self.ds.image_size != model.image_size:
+            size = self.ds.image_size
+            self.ds.close()
+            raise PredictionError(
+                f"{path}: dataset frames are {size}x{size} px, but the checkpoint "
+                f"{model.source} expects image_size={model.image_size}x{model.image_size}"
+            )
+        self.total = len(self.ds)
+        self.fps = self.ds.fps
+
+    def chunks(self, size: int) -> Iterator[_Chunk]:
+        for i in range(0, len(self.ds), size):
+            j = min(i + size, len(self.ds))
+            yield _Chunk(self.ds.read_frames(i, j), self.ds.timestamp_s[i:j])
+
+    def close(self) -> None:
+        self.ds.close()
+
+
+class _VideoSource(_Source):
+    kind = "video"
+
+    def __init__(self, path: Path, model: PressureModel, preprocess: str):
+        import cv2
+
+        self.path = path
+        self.cap = cv2.VideoCapture(str(path))
+        if not self.cap.isOpened():
+            raise PredictionError(
+                f"{path}: not a readable video or HDF5 dataset (OpenCV cannot open it)"
+            )
+        ok, first = self.cap.read()
+        if not ok or first is None:
+            self.cap.release()
+            raise PredictionError(f"{path}: the video has no readable frames")
+        self._first = first
+        count = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.total = count if count > 0 else None
+        fps = float(self.cap.get(cv2.CAP_PROP_FPS))
+        self.fps = fps if fps > 0 else float("nan")
+        self._convert = self._converter(first.shape, model, preprocess)
+
+    def _converter(self, shape: tuple[int, ...], model: PressureModel, preprocess: str):
+        import cv2
+
+        s = model.image_size
+        h, w = shape[:2]
+        if len(shape) != 3 or shape[2] != 3:
+            raise PredictionError(f"{self.path}: expected 3-channel colour frames, got {shape}")
+        if preprocess in ("auto", "none") and (h, w) == (s, s):
+            self.preprocess = "none"
+            return lambda bgr: cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        if preprocess == "none":
+            raise PredictionError(
+                f"{self.path}: video frames are {h}x{w} px, but the checkpoint {model.source} "
+                f"expects image_size={s}x{s}; use --preprocess auto or reference to unwarp, "
+                "crop and resize raw camera frames"
+            )
+        try:
+            from beadsight.preprocess import Preprocessor
+        except ImportError as e:
+            raise PredictionError(
+                f"{self.path}: frames of {h}x{w} px need preprocessing, but "
+                f"beadsight.preprocess is not available ({e})"
+            ) from None
+        if preprocess in ("auto", "reference"):
+            self.preprocess = "reference"
+            return Preprocessor.reference(input_hw=(h, w), output_size=s)
+        self.preprocess = preprocess  # another spec: reference-linear or a calibration file
+        return Preprocessor.from_spec(preprocess, input_hw=(h, w), output_size=s)
+
+    def _frame(self, bgr: np.ndarray, index: int) -> np.ndarray:
+        if bgr.shape != self._first.shape:
+            raise PredictionError(
+                f"{self.path}: frame {index} is {bgr.shape}, but the video started with "
+                f"{self._first.shape} frames"
+            )
+        return np.asarray(self._convert(bgr), dtype=np.uint8)
+
+    def chunks(self, size: int) -> Iterator[_Chunk]:
+        import cv2
+
+        index = 0
+        pending = self._first
+        while pending is not None:
+            frames, times = [], []
+            while pending is not None and len(frames) < size:
+                if np.isfinite(self.fps):
+                    times.append(index / self.fps)
+                else:
+                    times.append(self.cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
+                frames.append(self._frame(pending, index))
+                index += 1
+                ok, nxt = self.cap.read()
+                pending = nxt if ok else None
+            yield _Chunk(np.stack(frames), np.asarray(times, np.float64))
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+def _open_source(path: Path, model: PressureModel, preprocess: str) -> _Source:
+    if not preprocess:
+        raise PredictionError(f"--preprocess: expected one of {PREPROCESS_MODES}, got nothing")
+    if not path.is_file():
+        raise PredictionError(f"{path}: input file not found")
+    if h5py.is_hdf5(path):
+        return _DatasetSource(path, model, preprocess)
+    return _VideoSource(path, model, preprocess)
+
+
+# --- prediction ---------------------------------------------------------------------
+def _output_specs(s: int) -> dict[str, tuple[tuple[int, ...], object, bool]]:
+    return {
+        "pressure_kpa": ((s, s), np.float32, True),
+        "force_n": ((), np.float64, False),
+        "cop_mm": ((2,), np.float64, False),
+        "has_pressure": ((), bool, False),
+        "timestamp_s": ((), np.float64, False),
+        "frame_index": ((), np.int64, False),
+        "valid": ((), bool, False),
+    }
+
+
+def _summaries(maps: np.ndarray, model: PressureModel) -> dict[str, np.ndarray]:
+    force = np.asarray(total_force_n(maps.astype(np.float64), model.geometry))
+    has = np.clip(maps, 0, None).sum(axis=(1, 2)) > 0
+    return {
+        "force_n": force,
+        "cop_mm": centre_of_pressure_mm(maps, model.geometry),
+        "has_pressure": has,
+    }
+
+
+def predict_recording(
+    checkpoint: PressureModel | str | Path,
+    input: str | Path,
+    out: str | Path,
+    *,
+    preprocess: str = "auto",
+    batch_size: int = DEFAULT_BATCH_SIZE,
+    device: str | torch.device = "auto",
+    progress: bool = True,
+) -> Path:
+    """Predict a pressure map for every frame of a dataset or video; write ``out`` (HDF5).
+
+    checkpoint: a PressureModel or a checkpoint path. input: a beadsight/reference
+    HDF5 dataset (frames at the model's size) or a video file readable by OpenCV.
+    preprocess: "auto" (video frames already square at the model's size are used
+    as they are, BGR -> RGB; others go through the reference preprocessing),
+    "none" (frames must be at the model's size), "reference" (always preprocess);
+    any other value is a :meth:`beadsight.preprocess.Preprocessor.from_spec` spec
+    ("reference-linear" or a fisheye calibration JSON file) applied to video frames.
+    Returns the output path; the layout is in this module's docstring.
+    """
+    if batch_size < 1:
+        raise PredictionError(f"--batch-size must be >= 1, got {batch_size}")
+    input, out = Path(input), Path(out)
+    if not input.is_file():
+        raise PredictionError(f"{input}: input file not found")
+    if out.exists() and out.resolve() == input.resolve():
+        raise PredictionError(f"{out}: the output would overwrite the input")
+    model = as_model(checkpoint, device)
+    source = _open_source(input, model, preprocess)
+    s, t = model.image_size, model.window
+    try:
+        with IncrementalH5(out, _output_specs(s)) as writer:
+            writer.file.attrs.update(_attrs(model, input, source))
+            ring = WindowBuffer(t)
+            with tqdm(
+                total=source.total, unit="frame", desc="predict", disable=not progress
+            ) as bar:
+                for chunk in source.chunks(max(batch_size, READ_CHUNK_FRAMES)):
+                    _predict_chunk(model, ring, chunk, writer, batch_size)
+                    bar.update(len(chunk.frames))
+            if writer.rows < t:
+                log.warning(
+                    "%s: %d frames, fewer than the window of %d: no valid prediction",
+                    input,
+                    writer.rows,
+                    t,
+                )
+    finally:
+        source.close()
+    log.info("wrote %s (%d frames)", out, writer.rows)
+    return out
+
+
+def _predict_chunk(
+    model: PressureModel, ring: WindowBuffer, chunk: _Chunk, writer: IncrementalH5, batch_size: int
+) -> None:
+    n, s = len(chunk.frames), model.image_size
+    if chunk.frames.shape[1:] != (s, s, 3):
+        raise PredictionError(
+            f"frames are {chunk.frames.shape[1:3]} px after preprocessing; the checkpoint "
+            f"{model.source} expects image_size={s}x{s}"
+        )
+    windows, first = ring.push(chunk.frames)
+    maps = np.zeros((n, s, s), np.float32)
+    if len(windows):
+        maps[first:] = model.predict(windows, batch_size=batch_size)
+    valid = np.arange(n) >= first
+    start = writer.rows
+    writer.append(
+        pressure_kpa=maps,
+        timestamp_s=chunk.timestamp_s,
+        frame_index=np.arange(start, start + n, dtype=np.int64),
+        valid=valid,
+        **_summaries(maps, model),
+    )
+
+
+def _attrs(model: PressureModel, input: Path, source: _Source) -> dict:
+    return {
+        "format": PREDICTIONS_FORMAT,
+        "format_version": PREDICTIONS_FORMAT_VERSION,
+        "checkpoint": str(model.source),
+        "input": str(input),
+        "input_kind": source.kind,
+        "preprocess": source.preprocess,
+        "fps": source.fps,
+        "window": model.window,
+        "image_size": model.image_size,
+        "geometry": model.geometry.to_json(),
+        "units": json.dumps(
+            {
+                "pressure_kpa": "kPa",
+                "force_n": "N",
+                "cop_mm": "mm (x, y), printer frame",
+                "timestamp_s": "s (dataset: unix time; video: from the start of the video)",
+            }
+        ),
+        "cop_note": "cop_mm is NaN exactly where has_pressure is False (no positive pressure)",
+        "created_unix": time.time(),
+        "beadsight_version": __version__,
+    }
+
+
+def summarize_predictions(path: str | Path) -> str:
+    """One line describing a predictions file: frames, valid frames, peak force, input."""
+    path = Path(path)
+    with h5py.File(path, "r") as f:
+        valid = f["valid"][()]
+        force = f["force_n"][()]
+        peak = float(force[valid].max()) if valid.any() else float("nan")
+        return (
+            f"wrote {path}: {len(valid)} frames ({int(valid.sum())} with a full window), "
+            f"peak force {peak:.2f} N, from {f.attrs['input_kind']} {f.attrs['input']} "
+            f"(preprocess: {f.attrs['preprocess']})"
+        )
