@@ -1,0 +1,72 @@
+"""The data-collection rig's devices: printer, scale, camera, and their virtual twins.
+
+Drivers (each a context manager with ``connect()`` / ``close()``):
+
+* :class:`MarlinPrinter` - G-code over serial with line numbers, checksums, resends and
+  a :class:`SafetyEnvelope` checked before anything is sent.
+* :class:`HX711Scale` - background reader of the Arduino scale (beadsight firmware or the
+  reference sketch), host-timestamped :class:`Reading` objects.
+* :class:`OpenCVCamera` - camera index or video file, background reader,
+  timestamped :class:`Frame` objects, ``read`` / ``read_latest``.
+
+Virtual twins live in :mod:`beadsight.devices.virtual` (``VirtualPrinter``,
+``VirtualScale``, ``VirtualCamera``, ``VirtualRig``); they are importable from here
+too, lazily. Errors are :class:`DeviceError` subclasses naming the device, with a hint.
+"""
+
+from beadsight.devices.base import (
+    Camera,
+    CameraConfigError,
+    CameraDisconnectedError,
+    CommandRecord,
+    DeviceError,
+    DeviceNotConnectedError,
+    DeviceTimeoutError,
+    Frame,
+    Printer,
+    PrinterError,
+    Reading,
+    SafetyError,
+    Scale,
+    ScaleError,
+    ScaleReading,
+)
+from beadsight.devices.camera import CameraStats, OpenCVCamera
+from beadsight.devices.envelope import SafetyEnvelope
+from beadsight.devices.hx711 import HX711Scale, ScaleStats
+from beadsight.devices.marlin import MarlinPrinter
+
+_VIRTUAL = ("VirtualCamera", "VirtualPrinter", "VirtualRig", "VirtualScale", "SimClock")
+
+__all__ = [
+    "Camera",
+    "CameraConfigError",
+    "CameraDisconnectedError",
+    "CameraStats",
+    "CommandRecord",
+    "DeviceError",
+    "DeviceNotConnectedError",
+    "DeviceTimeoutError",
+    "Frame",
+    "HX711Scale",
+    "MarlinPrinter",
+    "OpenCVCamera",
+    "Printer",
+    "PrinterError",
+    "Reading",
+    "SafetyEnvelope",
+    "SafetyError",
+    "Scale",
+    "ScaleError",
+    "ScaleReading",
+    "ScaleStats",
+    *_VIRTUAL,
+]
+
+
+def __getattr__(name: str):
+    if name in _VIRTUAL:  # the virtual twins need pty (POSIX) and, for the rig, the simulator
+        from beadsight.devices import virtual
+
+        return getattr(virtual, name)
+    raise AttributeError(f"module 'beadsight.devices' has no attribute {name!r}")

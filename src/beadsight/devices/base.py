@@ -1,0 +1,183 @@
+"""Small device interfaces (Camera, Printer, Scale), their records and their exceptions.
+
+Collection code takes device objects typed by these protocols, so it runs unchanged on
+the real drivers (:class:`~beadsight.devices.marlin.MarlinPrinter`,
+:class:`~beadsight.devices.hx711.HX711Scale`,
+:class:`~beadsight.devices.camera.OpenCVCamera`) and on the virtual rig
+(:mod:`beadsight.devices.virtual`).
+
+Timestamps: every record carries two host clocks read at the same moment:
+``t_unix`` (``time.time()``, float64 s since the epoch, comparable across machines and
+with the reference logs) and ``t_mono`` (``time.monotonic()``, float64 s, never jumps;
+use it to align streams inside one session).
+
+Every exception is a :class:`DeviceError` (a :class:`beadsight.errors.BeadSightError`,
+so the CLI prints it as one line); its message starts with the device's name (e.g.
+``"printer /dev/ttyUSB0"``) and ends with a hint when there is a likely fix.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+
+from beadsight.errors import BeadSightError
+
+
+# --- exceptions ----------------------------------------------------------------------
+class DeviceError(BeadSightError):
+    """A device failed or refused; ``device`` names it, ``hint`` suggests a fix (or None)."""
+
+    def __init__(self, device: str, message: str, hint: str | None = None):
+        self.device = device
+        self.detail = message
+        self.hint = hint
+        text = f"{device}: {message}"
+        if hint:
+            text += f" (hint: {hint})"
+        super().__init__(text)
+
+    def __reduce__(self):  # keep the three-argument constructor picklable
+        return (type(self), (self.device, self.detail, self.hint))
+
+
+class DeviceNotConnectedError(DeviceError):
+    """The device is absent, busy, unplugged, or was never connected."""
+
+
+class DeviceTimeoutError(DeviceError):
+    """The device did not answer (or stopped streaming) within the allowed time."""
+
+
+class SafetyError(DeviceError):
+    """A command was refused before anything was sent, because it could damage the rig."""
+
+
+class PrinterError(DeviceError):
+    """The printer reported an error (``Error:...``) or is halted."""
+
+
+class ScaleError(DeviceError):
+    """The scale rejected a command (``ERR ...``) or gave unusable data."""
+
+
+class CameraConfigError(DeviceError):
+    """The camera does not deliver the requested resolution / frame rate."""
+
+
+class CameraDisconnectedError(DeviceNotConnectedError):
+    """The camera stopped delivering frames (end of file, unplugged) and the buffer is empty."""
+
+
+# --- clocks and records ------------------------------------------------------------------
+def host_now() -> tuple[float, float]:
+    """``(t_unix, t_mono)``: both host clocks read back to back, float64 seconds."""
+    return time.time(), time.monotonic()
+
+
+class CommandRecord(NamedTuple):
+    """One G-code command the printer acknowledged (``ok``); unpacks as a 6-tuple.
+
+    ``t_unix`` / ``t_mono``: host time the ``ok`` arrived (s). For ``G1`` the printer
+    acknowledges after *planning*, so motion ends later; the ``M400`` record that
+    follows marks arrival. ``x_mm, y_mm, z_mm``: the commanded printer position after
+    the command (absolute, mm; NaN while unknown, i.e. before homing).
+    """
+
+    t_unix: float
+    t_mono: float
+    gcode: str
+    x_mm: float
+    y_mm: float
+    z_mm: float
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One scale reading.
+
+    ``t_unix`` / ``t_mono``: host time the line arrived (s). ``grams``: load in grams
+    (2 decimals from the device, after any host-side tare/gain). ``force_n``: the same
+    load in newtons (``grams * 9.81e-3``, the reference factor). ``seq``: sample number
+    (from the device for the beadsight firmware, reconstructed for the reference sketch;
+    gaps mean dropped readings). ``device_ms``: the Arduino's ``millis()`` when sampled,
+    or None when the protocol does not send it.
+    """
+
+    t_unix: float
+    t_mono: float
+    grams: float
+    force_n: float
+    seq: int
+    device_ms: int | None
+
+
+ScaleReading = Reading  # alias for readers who want the longer name
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One captured camera frame.
+
+    ``image``: (H, W, 3) uint8 **BGR** (OpenCV order). ``index``: capture order from 0;
+    a jump between two frames you read means frames were skipped or dropped in between.
+    ``t_mono`` / ``t_unix``: host time the frame was captured (s).
+    """
+
+    image: np.ndarray
+    index: int
+    t_mono: float
+    t_unix: float
+
+
+# --- protocols --------------------------------------------------------------------------
+@runtime_checkable
+class Printer(Protocol):
+    """A motion stage carrying the finger (Marlin printer or its virtual twin)."""
+
+    name: str
+
+    def connect(self) -> None: ...
+    def close(self) -> None: ...
+    def home(self) -> tuple[float, float, float]: ...
+    def move(
+        self, x: float | None, y: float | None, z: float | None, feed_mm_min: float
+    ) -> None: ...
+    def dwell(self, ms: float) -> None: ...
+    def wait_for_motion(self) -> None: ...
+    def position(self) -> tuple[float, float, float]: ...
+    def heaters_off(self) -> None: ...
+    def emergency_stop(self) -> None: ...
+
+
+@runtime_checkable
+class Scale(Protocol):
+    """A force sensor streaming timestamped readings (HX711 scale or its virtual twin)."""
+
+    name: str
+
+    def connect(self) -> None: ...
+    def close(self) -> None: ...
+    def latest(self) -> Reading | None: ...
+    def readings_since(self, t_mono: float) -> list[Reading]: ...
+    def drain(self) -> list[Reading]: ...
+    def tare(self) -> None: ...
+    def calibrate(self, known_grams: float) -> float: ...
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """A frame source with a background reader (OpenCV camera / file, virtual camera)."""
+
+    name: str
+    width: int
+    height: int
+    fps: float
+
+    def connect(self) -> None: ...
+    def close(self) -> None: ...
+    def read(self, timeout_s: float | None = None) -> Frame: ...
+    def read_latest(self, timeout_s: float | None = None) -> Frame: ...
