@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import h5py
 import numpy as np
 
@@ -378,10 +379,12 @@ class DatasetWriter:
             ds = self._f[name]
             ds.resize(start + n, axis=0)
             ds[start:] = values
-        pixels = frames.reshape(-1, 3).astype(np.float64)
-        self._sum += pixels.sum(0)
-        self._sumsq += (pixels * pixels).sum(0)
-        self._count += len(pixels)
+        pixels_per_frame = frames.shape[1] * frames.shape[2]
+        for frame in frames:  # cv2 avoids a float64 copy of the batch (~0.1 ms per frame)
+            mean, std = (v.ravel() for v in cv2.meanStdDev(frame))
+            self._sum += mean * pixels_per_frame
+            self._sumsq += (std * std + mean * mean) * pixels_per_frame
+        self._count += n * pixels_per_frame
         self._f.flush()
 
     def close(self) -> Path:
