@@ -231,7 +231,8 @@ class VirtualPrinter(PtyDevice):
             while self._queue and not self.halted:
                 if not self._step_head(self._queue[0], now):
                     break
-                self._queue.popleft()
+                if self._queue:  # a halt while stepping empties the queue
+                    self._queue.popleft()
 
     # --- line framing ----------------------------------------------------------------
     def _check_framing(self, line: str) -> str | None:
