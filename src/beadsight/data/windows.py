@@ -1,0 +1,519 @@
+"""Training windows: causal stacks of T frames labelled by their newest frame.
+
+A window ending at frame ``e`` holds frames ``e-T+1 .. e`` (oldest first); its
+target is the ground-truth pressure map of frame ``e``
+(:func:`beadsight.data.labels.label_maps`), so the model never sees the future.
+Which frames may end a window comes from :func:`beadsight.data.splits.window_ends`,
+the same selection evaluation uses.
+
+Two ways to feed a training loop, with the same batches:
+
+* **host** (:class:`WindowDataset` + a ``torch.utils.data.DataLoader`` with workers):
+  each window is one contiguous slice read from the HDF5 file, resized on the fly
+  (``cv2.INTER_AREA``) when training at a reduced image size.
+* **device** (:class:`DeviceWindows`): every frame any window needs is loaded once
+  into one uint8 tensor on the training device (GPU memory or RAM); a batch is
+  gathered by index arithmetic and labelled on the device, with no per-sample
+  Python work.
+
+:class:`WindowLoader` wraps either source; it shards batches across DDP ranks
+like ``DistributedSampler``, applies the 8 dihedral (D4) transforms identically
+to all frames of a window and its target, and is deterministic given
+``(seed, epoch)`` so a resumed run sees the same batches it would have seen.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from beadsight.config import SensorGeometry
+from beadsight.data.dataset import Dataset, open_dataset
+from beadsight.data.labels import label_maps
+
+logger = logging.getLogger(__name__)
+
+D4_ORDER = 8  # rotations by 0/90/180/270 degrees, each with and without a mirror
+LOADER_MODES = ("auto", "host", "device")
+DEVICE_MEMORY_FRACTION = (
+    0.4  # "auto" keeps frames on a GPU when they fill <= this of its free memory
+)
+HOST_MEMORY_FRACTION = 0.5  # ... or in RAM (CPU training) when they fill <= this of available RAM
+WORKER_START_METHOD = "spawn"  # host-mode DataLoader workers start as fresh processes
+READ_BLOCK_FRAMES = 256  # frames per HDF5 read while loading frames into memory
+STATS_MAX_FRAMES = 512  # frames sampled for the pixel mean/std
+FINGERPRINT_SAMPLE_FRAMES = 4  # frames hashed (besides all labels) in a dataset fingerprint
+
+
+# --- dihedral transforms -----------------------------------------------------------
+def d4_transform(x, k: int, axes: tuple[int, int] = (0, 1)):
+    """Apply dihedral transform ``k`` (0..7) to the two spatial ``axes`` of ``x``.
+
+    ``k % 4`` quarter turns (``np.rot90``/``torch.rot90`` convention, counter-clockwise),
+    then, for ``k >= 4``, a mirror along the second axis (``np.flip(axis=axes[1])``).
+    Works on numpy arrays and torch tensors; the 8 values of ``k`` give the 8
+    distinct symmetries of the square. Square images keep their shape.
+    """
+    if not 0 <= int(k) < D4_ORDER:
+        raise ValueError(f"D4 transform index must be in 0..7, got {k}")
+    k = int(k)
+    if isinstance(x, torch.Tensor):
+        y = torch.rot90(x, k % 4, dims=axes)
+        return torch.flip(y, dims=(axes[1],)) if k >= 4 else y
+    y = np.rot90(x, k % 4, axes=axes)
+    return np.flip(y, axis=axes[1]) if k >= 4 else y
+
+
+def d4_batch(
+    frames: torch.Tensor, targets: torch.Tensor, ks: np.ndarray
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-sample D4 transforms of a batch, identical for all frames of a sample and its target.
+
+    frames: (B, T, S, S, 3); targets: (B, S, S); ks: (B,) ints in 0..7.
+    returns: transformed (frames, targets), same shapes, dtypes and device. One
+    tensor operation per distinct ``k`` (at most 8), not per sample.
+    """
+    ks = np.asarray(ks)
+    if (ks == 0).all():
+        return frames, targets
+    out_f = torch.empty_like(frames)
+    out_t = torch.empty_like(targets)
+    if (np.diff(ks) >= 0).all():  # sorted (as epoch_batches plans them): one slice per k
+        bounds = np.flatnonzero(np.diff(ks)) + 1
+        for a, b in zip([0, *bounds.tolist()], [*bounds.tolist(), len(ks)], strict=True):
+            out_f[a:b] = d4_transform(frames[a:b], int(ks[a]), axes=(2, 3))
+            out_t[a:b] = d4_transform(targets[a:b], int(ks[a]), axes=(1, 2))
+        return out_f, out_t
+    for k in np.unique(ks).tolist():
+        sel = _index_on(frames.device, np.flatnonzero(ks == k))
+        out_f[sel] = d4_transform(frames.index_select(0, sel), k, axes=(2, 3))
+        out_t[sel] = d4_transform(targets.index_select(0, sel), k, axes=(1, 2))
+    return out_f, out_t
+
+
+# --- frames --------------------------------------------------------------------------
+def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
+    """(n, S, S, 3) uint8 -> (n, size, size, 3) uint8 by area averaging (cv2.INTER_AREA)."""
+    if frames.shape[1] == size and frames.shape[2] == size:
+        return frames
+    out = np.empty((len(frames), size, size, 3), dtype=np.uint8)
+    for i, frame in enumerate(frames):
+        out[i] = cv2.resize(frame, (size, size), interpolation=cv2.INTER_AREA)
+    return out
+
+
+def window_frame_mask(ends: np.ndarray, window: int, num_frames: int) -> np.ndarray:
+    """(N,) bool: frames that belong to at least one window ending at ``ends``."""
+    delta = np.zeros(num_frames + 1, dtype=np.int64)
+    np.add.at(delta, np.asarray(ends) - window + 1, 1)
+    np.add.at(delta, np.asarray(ends) + 1, -1)
+    return np.cumsum(delta[:-1]) > 0
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) ranges of consecutive True values."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()
+    return list(zip(starts, stops, strict=True))
+
+
+def pixel_stats(
+    ds: Dataset, frame_mask: np.ndarray, image_size: int, max_frames: int = STATS_MAX_FRAMES
+) -> tuple[list[float], list[float]]:
+    """Per-channel RGB mean and std (0..255 units) of up to ``max_frames`` frames in ``frame_mask``,
+    evenly spaced, measured at the training ``image_size`` (what the network sees)."""
+    idx = np.flatnonzero(frame_mask)
+    if len(idx) == 0:
+        raise ValueError(f"{ds.path}: no frames to measure pixel statistics on")
+    idx = idx[np.unique(np.linspace(0, len(idx) - 1, min(len(idx), max_frames)).astype(np.int64))]
+    total = np.zeros(3)
+    total_sq = np.zeros(3)
+    count = 0
+    for i in range(0, len(idx), 64):
+        block = resize_frames(ds.read_frames_at(idx[i : i + 64]), image_size)
+        pixels = block.reshape(-1, 3).astype(np.float64)
+        total += pixels.sum(0)
+        total_sq += (pixels * pixels).sum(0)
+        count += len(pixels)
+    mean = total / count
+    std = np.sqrt(np.maximum(total_sq / count - mean**2, 0.0))
+    return mean.tolist(), np.maximum(std, 1e-3).tolist()
+
+
+def dataset_fingerprint(ds: Dataset) -> str:
+    """A short hash identifying a dataset's content: shapes, all per-frame labels
+    (force, position, validity) and a few frames. Cheap even for 20 GB files."""
+    h = hashlib.sha256()
+    h.update(repr((tuple(ds.frames.shape), ds.channel_order, ds.geometry.to_json())).encode())
+    for arr in (ds.force_n, ds.position_mm, ds.valid):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    n = len(ds)
+    for i in np.unique(np.linspace(0, n - 1, min(n, FINGERPRINT_SAMPLE_FRAMES)).astype(int)):
+        h.update(np.ascontiguousarray(ds.frames[int(i)]).tobytes())
+    return h.hexdigest()[:16]
+
+
+# --- window sources ----------------------------------------------------------------
+@dataclass(frozen=True)
+class WindowLabels:
+    """What labels the windows of one split: end frames and their label inputs.
+
+    ends: (M,) int64 frame index of each window's newest frame; force_n: (M,) N;
+    position_mm: (M, 2) mm; contact: (M,) bool; geometry: at the training image size.
+    """
+
+    ends: np.ndarray
+    force_n: np.ndarray
+    position_mm: np.ndarray
+    contact: np.ndarray
+    geometry: SensorGeometry
+
+    @classmethod
+    def from_dataset(cls, ds: Dataset, ends: np.ndarray, image_size: int) -> WindowLabels:
+        ends = np.asarray(ends, dtype=np.int64)
+        return cls(
+            ends=ends,
+            force_n=ds.force_n[ends].astype(np.float64),
+            position_mm=ds.position_mm[ends].astype(np.float64),
+            contact=ds.contact[ends].astype(bool),
+            geometry=ds.geometry.with_image_size(image_size),
+        )
+
+    def __len__(self) -> int:
+        return len(self.ends)
+
+    def maps(self, index: np.ndarray) -> np.ndarray:
+        """(B,) window indices -> (B, S, S) float32 kPa targets (numpy)."""
+        return label_maps(
+            self.force_n[index], self.position_mm[index], self.contact[index], self.geometry
+        )
+
+
+class WindowDataset(torch.utils.data.Dataset):
+    """Host-mode windows read from the HDF5 file (one contiguous slice per window).
+
+    item ``i``: (frames (T, S, S, 3) uint8 RGB oldest first, target (S, S) float32 kPa),
+    where S is ``labels.geometry.image_size_px`` (frames are resized with
+    ``cv2.INTER_AREA`` if the file's frames are larger). The file is opened lazily
+    in each process, so the dataset can go to DataLoader workers.
+    """
+
+    def __init__(self, path: str | Path, labels: WindowLabels, window: int):
+        self.path = Path(path)
+        self.labels = labels
+        self.window = window
+        self._ds: Dataset | None = None
+        self._pid = -1
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_ds": None, "_pid": -1}
+
+    def _dataset(self) -> Dataset:
+        if self._ds is None or self._pid != os.getpid():
+            self._ds = open_dataset(self.path)
+            self._pid = os.getpid()
+        return self._ds
+
+    def read(self, i: int) -> np.ndarray:
+        """(T, S, S, 3) uint8 RGB frames of window ``i``."""
+        end = int(self.labels.ends[i])
+        frames = self._dataset().read_frames(end - self.window + 1, end + 1)
+        return resize_frames(frames, self.labels.geometry.image_size_px)
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        target = self.labels.maps(np.array([i]))[0]
+        return torch.from_numpy(np.ascontiguousarray(self.read(i))), torch.from_numpy(target)
+
+    def close(self) -> None:
+        if self._ds is not None:
+            self._ds.close()
+            self._ds = None
+
+
+class DeviceFrames:
+    """The frames of a set of windows, loaded once into one uint8 tensor on ``device``.
+
+    frames: (Nc, S, S, 3) uint8 RGB (only frames some window needs, in file order);
+    compact: (N,) int64 position of each file frame in ``frames`` (-1 if not loaded).
+    Consecutive frames of a window stay consecutive, so window ``e`` is
+    ``frames[compact[e] - T + 1 : compact[e] + 1]``.
+    """
+
+    def __init__(self, frames: torch.Tensor, compact: np.ndarray):
+        self.frames = frames
+        self.compact = compact
+
+    @classmethod
+    def load(
+        cls,
+        ds: Dataset,
+        frame_mask: np.ndarray,
+        image_size: int,
+        device: torch.device,
+        progress: bool = True,
+    ) -> DeviceFrames:
+        n = int(frame_mask.sum())
+        compact = np.full(len(frame_mask), -1, dtype=np.int64)
+        compact[frame_mask] = np.arange(n)
+        frames = torch.empty((n, image_size, image_size, 3), dtype=torch.uint8, device=device)
+        with tqdm(
+            total=n, desc="loading frames", unit="frame", disable=not progress, mininterval=1.0
+        ) as bar:
+            for start, stop in _runs(frame_mask):
+                for a in range(start, stop, READ_BLOCK_FRAMES):
+                    b = min(a + READ_BLOCK_FRAMES, stop)
+                    block = resize_frames(ds.read_frames(a, b), image_size)
+                    frames[compact[a] : compact[a] + (b - a)] = torch.from_numpy(
+                        np.ascontiguousarray(block)
+                    ).to(device, non_blocking=False)
+                    bar.update(b - a)
+        return cls(frames, compact)
+
+    @staticmethod
+    def nbytes(frame_mask: np.ndarray, image_size: int) -> int:
+        return int(frame_mask.sum()) * image_size * image_size * 3
+
+
+def _index_on(device: torch.device, index: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """Index array -> int64 tensor on ``device``; to a GPU through pinned memory without
+    blocking, so gathering a batch does not wait for the GPU to finish earlier work."""
+    idx = torch.as_tensor(index, dtype=torch.int64)
+    if device.type == "cuda" and idx.device.type == "cpu":
+        return idx.pin_memory().to(device, non_blocking=True)
+    return idx.to(device)
+
+
+class DeviceWindows:
+    """Device-mode windows: batches gathered from :class:`DeviceFrames` and labelled on the device.
+
+    ``batch(index)`` with (B,) window indices returns (frames (B, T, S, S, 3) uint8
+    RGB, targets (B, S, S) float32 kPa), both on the frames' device.
+    """
+
+    def __init__(self, store: DeviceFrames, labels: WindowLabels, window: int):
+        device = store.frames.device
+        compact_ends = store.compact[labels.ends]
+        if (compact_ends < window - 1).any() or (store.compact[labels.ends - window + 1] < 0).any():
+            raise ValueError("DeviceWindows: the frame store lacks frames of some windows")
+        self.store = store
+        self.labels = labels
+        self.window = window
+        self.device = device
+        self._ends = torch.as_tensor(compact_ends, device=device)
+        self._offsets = torch.arange(-window + 1, 1, device=device)  # oldest first
+        self._force = torch.as_tensor(labels.force_n, dtype=torch.float32, device=device)
+        self._position = torch.as_tensor(labels.position_mm, dtype=torch.float32, device=device)
+        self._contact = torch.as_tensor(labels.contact, device=device)
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def batch(self, index: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        idx = _index_on(self.device, index)
+        rows = self._ends[idx][:, None] + self._offsets[None]  # (B, T) frame rows
+        frames = self.store.frames.index_select(0, rows.reshape(-1))  # (B*T, S, S, 3)
+        frames = frames.view(len(idx), self.window, *frames.shape[1:])  # (B, T, S, S, 3)
+        targets = label_maps(
+            self._force[idx], self._position[idx], self._contact[idx], self.labels.geometry
+        )
+        return frames, targets
+
+
+# --- batching ------------------------------------------------------------------------
+def epoch_batches(
+    n: int,
+    batch_size: int,
+    *,
+    epoch: int,
+    seed: int,
+    shuffle: bool,
+    augment: bool,
+    rank: int = 0,
+    world_size: int = 1,
+    pad: bool = True,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """This rank's batches of one epoch: [(window indices (b,), D4 indices (b,)), ...].
+
+    Like ``DistributedSampler``: one order for all ranks (a permutation seeded by
+    ``(seed, epoch)`` when ``shuffle``), padded by wrapping to a multiple of
+    ``world_size`` when ``pad`` (so every rank runs the same number of batches),
+    rank ``r`` taking every ``world_size``-th window from ``r``. ``batch_size`` is
+    per rank. Within a batch, samples are ordered by D4 index (batch order does
+    not matter to training; it lets each transform act on one slice).
+    """
+    rng = np.random.default_rng([seed, epoch])
+    order = rng.permutation(n) if shuffle else np.arange(n)
+    ks = rng.integers(0, D4_ORDER, size=n) if augment else np.zeros(n, dtype=np.int64)
+    if pad and world_size > 1 and n % world_size:
+        extra = world_size - n % world_size
+        order = np.concatenate([order, np.resize(order, extra)])
+        ks = np.concatenate([ks, np.resize(ks, extra)])
+    order, ks = order[rank::world_size], ks[rank::world_size]
+    batches = []
+    for i in range(0, len(order), batch_size):
+        b_idx, b_ks = order[i : i + batch_size], ks[i : i + batch_size]
+        sort = np.argsort(b_ks, kind="stable")
+        batches.append((b_idx[sort], b_ks[sort]))
+    return batches
+
+
+class _PlanSampler:
+    """batch_sampler for a DataLoader: yields the current epoch plan's index lists."""
+
+    def __init__(self) -> None:
+        self.plan: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def __iter__(self) -> Iterator[list[int]]:
+        for idx, _ in self.plan:
+            yield idx.tolist()
+
+    def __len__(self) -> int:
+        return len(self.plan)
+
+
+def _worker_init(_: int) -> None:
+    cv2.setNumThreads(1)
+
+
+class WindowLoader:
+    """Batches of windows on the training device, deterministic given (seed, epoch).
+
+    Iterating yields (frames (B, T, S, S, 3) uint8 RGB, targets (B, S, S) float32 kPa)
+    on ``device``. Call :meth:`set_epoch` before each epoch (optionally skipping the
+    first batches, to resume mid-epoch). ``source`` is a :class:`DeviceWindows`
+    (device mode) or a :class:`WindowDataset` (host mode, read by a DataLoader with
+    ``num_workers`` workers). ``stride`` keeps every stride-th window (cheaper
+    validation: neighbouring windows overlap by T-1 frames).
+    """
+
+    def __init__(
+        self,
+        source: DeviceWindows | WindowDataset,
+        batch_size: int,
+        *,
+        device: torch.device,
+        shuffle: bool,
+        augment: bool,
+        seed: int = 0,
+        rank: int = 0,
+        world_size: int = 1,
+        num_workers: int = 0,
+        stride: int = 1,
+        pad: bool = True,
+    ):
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        self.source = source
+        self.batch_size = batch_size
+        self.device = torch.device(device)
+        self.shuffle, self.augment, self.seed = shuffle, augment, seed
+        self.rank, self.world_size, self.pad = rank, world_size, pad
+        self.subset = np.arange(0, len(source), max(1, stride))
+        self.mode = "device" if isinstance(source, DeviceWindows) else "host"
+        self._sampler = _PlanSampler()
+        self._loader = None
+        if self.mode == "host":
+            self._loader = torch.utils.data.DataLoader(
+                source,
+                batch_sampler=self._sampler,
+                num_workers=num_workers,
+                pin_memory=self.device.type == "cuda",
+                persistent_workers=num_workers > 0,
+                worker_init_fn=_worker_init if num_workers > 0 else None,
+                prefetch_factor=4 if num_workers > 0 else None,
+                # spawn, not fork: a forked worker inherits OpenCV's thread pool and HDF5
+                # state from the parent and can deadlock in them
+                multiprocessing_context=WORKER_START_METHOD if num_workers > 0 else None,
+            )
+        self.set_epoch(0)
+
+    @property
+    def num_windows(self) -> int:
+        return len(self.subset)
+
+    def set_epoch(self, epoch: int, skip_batches: int = 0) -> None:
+        plan = epoch_batches(
+            len(self.subset),
+            self.batch_size,
+            epoch=epoch,
+            seed=self.seed,
+            shuffle=self.shuffle,
+            augment=self.augment,
+            rank=self.rank,
+            world_size=self.world_size,
+            pad=self.pad,
+        )
+        self._sampler.plan = [(self.subset[idx], ks) for idx, ks in plan[skip_batches:]]
+        self._full_length = len(plan)
+
+    def __len__(self) -> int:
+        """Batches per full epoch on this rank."""
+        return self._full_length
+
+    def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        plan = list(self._sampler.plan)
+        if self.mode == "device":
+            for idx, ks in plan:
+                frames, targets = self.source.batch(idx)
+                yield d4_batch(frames, targets, ks)
+        else:
+            for (frames, targets), (_, ks) in zip(self._loader, plan, strict=True):
+                frames = frames.to(self.device, non_blocking=True)
+                targets = targets.to(self.device, non_blocking=True)
+                yield d4_batch(frames, targets, ks)
+
+
+# --- choosing a loader mode ---------------------------------------------------------
+def available_memory_bytes(device: torch.device) -> int:
+    """Free memory on ``device``: GPU free memory, or the host's MemAvailable."""
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return int(free)
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+
+
+def choose_loader_mode(mode: str, frames_bytes: int, device: torch.device, copies: int = 1) -> str:
+    """Resolve ``"auto"`` to ``"device"`` when ``copies`` x ``frames_bytes`` fit in a fraction
+    of the device's free memory (RAM for CPU training), else ``"host"``."""
+    if mode not in LOADER_MODES:
+        raise ValueError(f"loader must be one of {LOADER_MODES}, got {mode!r}")
+    if mode != "auto":
+        return mode
+    fraction = DEVICE_MEMORY_FRACTION if device.type == "cuda" else HOST_MEMORY_FRACTION
+    budget = available_memory_bytes(device) * fraction
+    chosen = "device" if frames_bytes * copies <= budget else "host"
+    logger.info(
+        "loader auto -> %s (frames need %.2f GB x %d, budget %.2f GB on %s)",
+        chosen,
+        frames_bytes / 1e9,
+        copies,
+        budget / 1e9,
+        device,
+    )
+    return chosen
+
+
+def batches_per_epoch(num_windows: int, batch_size: int, world_size: int = 1) -> int:
+    """Optimizer steps per epoch: every window once (padded to a multiple of world_size)."""
+    per_rank = math.ceil(num_windows / world_size)
+    return math.ceil(per_rank / batch_size)
