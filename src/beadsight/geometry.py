@@ -16,6 +16,7 @@ same type they were given.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TypeVar
 
@@ -120,15 +121,22 @@ def disk_maps(force_n, xy_mm, geometry: SensorGeometry):
     return (coverage * pressure[:, None, None]).astype(np.float32)
 
 
+@functools.lru_cache(maxsize=16)
+def _pixel_centres_tensors(geometry: SensorGeometry, device: str):
+    """Cached device copies of :func:`_pixel_centres_mm` (no host->device copy per batch)."""
+    import torch
+
+    return tuple(
+        torch.as_tensor(a, device=device, dtype=torch.float32) for a in _pixel_centres_mm(geometry)
+    )
+
+
 def _disk_maps_torch(force_n, xy_mm, geometry: SensorGeometry):
     import torch
 
     force = force_n.reshape(-1).to(torch.float32)
     xy = torch.as_tensor(xy_mm, device=force.device, dtype=torch.float32).reshape(-1, 2)
-    x_col, y_row = (
-        torch.as_tensor(a, device=force.device, dtype=torch.float32)
-        for a in _pixel_centres_mm(geometry)
-    )
+    x_col, y_row = _pixel_centres_tensors(geometry, str(force.device))
     dx = x_col[None, None, :] - xy[:, 0, None, None]
     dy = y_row[None, :, None] - xy[:, 1, None, None]
     dist_px = torch.sqrt(dx * dx + dy * dy) / geometry.mm_per_px
