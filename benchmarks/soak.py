@@ -1,0 +1,123 @@
+"""Soak test: 100,000 simulated frames through PressurePredictor.update.
+
+Targets: resident memory grows < 50 MB from the end of warm-up to the end, and
+latency does not creep (the p50 of each 10k-frame block stays near the first).
+
+    .venv/bin/python benchmarks/soak.py                       # reference size, auto backend
+    .venv/bin/python benchmarks/soak.py --frames 20000 --backend openvino
+    .venv/bin/python benchmarks/soak.py --image-size 64 --width 8   # quick, small model
+
+Frames: a few hundred simulator frames rendered once and cycled (the renderer is
+not what is being soaked). Frames are fed back to back with nominal 30 Hz
+timestamps; every 7919th frame is skipped to exercise the dropped-frame path.
+Prints RSS at start and end, and latency p50/p99 per block; exits 1 when memory
+grew by 50 MB or more.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+from beadsight.checkpoint import load_checkpoint
+from beadsight.latency import random_model, simulated_frames
+from beadsight.predictor import PressurePredictor
+
+MAX_RSS_GROWTH_MB = 50.0
+CREEP_LIMIT = 1.25  # later blocks' median p50 above this times the earlier blocks' is creep
+WARMUP_READINGS = 200  # readings before the start RSS is taken (allocators, caches)
+DROP_EVERY = 7919  # skip one frame in this many (a prime: never aligned with the blocks)
+SOURCE_FRAMES = 300
+
+
+def rss_mb() -> float:
+    """Resident set size of this process, MB (Linux /proc; else peak RSS)."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError):  # pragma: no cover - not Linux
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=100_000)
+    parser.add_argument("--block", type=int, default=10_000, help="frames per latency block")
+    parser.add_argument("--checkpoint", default=None)
+    parser.add_argument("--image-size", type=int, default=256, help="random model size, px")
+    parser.add_argument("--width", type=int, default=16, help="random model U-Net width")
+    parser.add_argument("--backend", default="auto")
+    parser.add_argument("--precision", default="auto")
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
+    args = parser.parse_args(argv)
+
+    if args.checkpoint:
+        model = load_checkpoint(args.checkpoint)
+    else:
+        model = random_model(image_size=args.image_size, width=args.width)
+    frames, source = simulated_frames(model.image_size, SOURCE_FRAMES)
+    predictor = PressurePredictor(model, args.backend, args.precision,
+                                  backend_options={"threads": args.threads})  # fmt: skip
+    print(f"soak: {args.frames} frames, {predictor!r}, frames from {source}", flush=True)
+    period = predictor.frame_period_s
+    latencies: list[float] = []
+    blocks: list[dict] = []
+    start_rss = None
+    readings = 0
+    t0 = time.perf_counter()
+    for k in range(args.frames):
+        if k % DROP_EVERY == DROP_EVERY - 1:
+            continue
+        reading = predictor.update(frames[k % len(frames)], k * period)
+        if reading is not None:
+            readings += 1
+            latencies.append(reading.latency_s)
+            if readings == WARMUP_READINGS:
+                start_rss = rss_mb()
+                print(f"RSS at start (after {WARMUP_READINGS} readings): {start_rss:.1f} MB")
+        if (k + 1) % args.block == 0 or k + 1 == args.frames:
+            lat = np.asarray(latencies) * 1e3
+            blocks.append({
+                "frames_done": k + 1, "readings": len(lat),
+                "p50_ms": float(np.percentile(lat, 50)) if len(lat) else None,
+                "p99_ms": float(np.percentile(lat, 99)) if len(lat) else None,
+                "rss_mb": rss_mb(),
+            })  # fmt: skip
+            b = blocks[-1]
+            if b["readings"]:
+                print(f"frames {b['frames_done']:>7d}: p50 {b['p50_ms']:7.2f} ms  "
+                      f"p99 {b['p99_ms']:7.2f} ms  RSS {b['rss_mb']:7.1f} MB", flush=True)  # fmt: skip
+            latencies = []
+    elapsed = time.perf_counter() - t0
+    end_rss = rss_mb()
+    start_rss = start_rss if start_rss is not None else end_rss
+    growth = end_rss - start_rss
+    p50s = [b["p50_ms"] for b in blocks if b["p50_ms"] is not None]
+    half = len(p50s) // 2
+    creep = (
+        float(np.median(p50s[half:]) / np.median(p50s[:half])) if half else float("nan")
+    )  # later blocks vs earlier blocks: robust to a single noisy block
+    print(f"RSS at end: {end_rss:.1f} MB (growth {growth:+.1f} MB; limit {MAX_RSS_GROWTH_MB} MB)")
+    print(f"latency creep: median p50 of the later / earlier half of the blocks = {creep:.2f} "
+          f"({'ok' if creep <= CREEP_LIMIT else 'CREEP'}; limit {CREEP_LIMIT})")  # fmt: skip
+    print(f"{readings} readings in {elapsed:.1f} s ({readings / elapsed:.1f} readings/s), "
+          f"dropped frames seen: {predictor.dropped_frames}")  # fmt: skip
+    if args.json:
+        print(json.dumps({"frames": args.frames, "readings": readings, "rss_start_mb": start_rss,
+                          "rss_end_mb": end_rss, "rss_growth_mb": growth, "creep": creep,
+                          "blocks": blocks, "backend": predictor.backend.describe()}))  # fmt: skip
+    predictor.close()
+    return 0 if growth < MAX_RSS_GROWTH_MB else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+"""``beadsight export`` and ``beadsight bench live``: argument parsing only."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from beadsight.backends import BACKENDS, PRECISIONS
+from beadsight.export import EXPORT_PRECISIONS, FORMATS
+
+
+def _backend_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--backend",
+        default="auto",
+        choices=("auto", *BACKENDS),
+        help="inference backend (auto: fastest that agrees with fp32 torch)",
+    )
+    p.add_argument("--precision", default="auto", choices=("auto", *PRECISIONS))
+    p.add_argument("--device", default=None, help="torch device for torch/cuda (e.g. cuda:0)")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all usable)")
+    p.add_argument(
+        "--cache-dir",
+        default="default",
+        help="cache for exports, compiled models and auto decisions "
+        "(default ~/.cache/beadsight; 'none' disables)",
+    )
+
+
+def _backend_options(args: argparse.Namespace) -> dict:
+    cache = None if args.cache_dir.lower() == "none" else args.cache_dir
+    return {"cache_dir": cache, "threads": args.threads}
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "export",
+        help="export a checkpoint to ONNX or OpenVINO (uint8 frames in, kPa out)",
+        description="Export a checkpoint with its normalisation and metadata; the file is "
+        "checked against torch and removed if it disagrees.",
+    )
+    p.add_argument("--checkpoint", required=True, help="beadsight or reference checkpoint")
+    p.add_argument("--format", required=True, choices=FORMATS)
+    p.add_argument("--out", required=True, help=".onnx file, or OpenVINO .xml")
+    p.add_argument("--precision", default="fp32", choices=EXPORT_PRECISIONS)
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(func=_export)
+
+    bench = subparsers.add_parser("bench", help="performance measurements")
+    sub = bench.add_subparsers(dest="bench_command", metavar="WHAT", required=True)
+    live = sub.add_parser(
+        "live",
+        help="live predictor rate, latency and error vs fp32 torch",
+        description="Feed simulated frames through PressurePredictor.update: max throughput "
+        "and sustained at --rate Hz. Without --checkpoint: a randomly initialised "
+        "reference-size model (width 16, 256 px, T=15).",
+    )
+    live.add_argument("--checkpoint", default=None)
+    _backend_args(live)
+    live.add_argument("--frames", type=int, default=600, help="frames per run (default 600)")
+    live.add_argument(
+        "--rate", type=float, default=30.0, help="camera rate of the sustained run, Hz (0: skip)"
+    )
+    live.add_argument("--seed", type=int, default=0)
+    live.add_argument("--json", action="store_true", help="print one JSON object")
+    live.set_defaults(func=_bench_live)
+
+
+def _export(args: argparse.Namespace) -> int:
+    from beadsight.export import export_model
+
+    report = export_model(args.checkpoint, args.format, args.out, args.precision)
+    if args.json:
+        print(json.dumps(report.to_dict()))
+    else:
+        print(
+            f"wrote {report.path} ({report.format}, {report.precision}); parity vs torch: "
+            f"max abs error {report.max_abs_err_kpa:.3g} kPa "
+            f"(tolerance {report.tolerance_kpa:.3g} kPa, peak {report.peak_kpa:.3g} kPa)"
+        )
+    return 0
+
+
+def _bench_live(args: argparse.Namespace) -> int:
+    from beadsight.checkpoint import load_checkpoint
+    from beadsight.latency import bench_live
+
+    model = load_checkpoint(args.checkpoint) if args.checkpoint else None
+    result = bench_live(
+        model,
+        backend=args.backend,
+        precision=args.precision,
+        frames=args.frames,
+        rate_hz=args.rate or None,
+        device=args.device,
+        backend_options=_backend_options(args),
+        seed=args.seed,
+    )
+    print(json.dumps(result.to_dict()) if args.json else result.summary())
+    return 0
