@@ -219,12 +219,14 @@ def test_region_mae_groups_by_true_position():
     strict_json(m)
 
 
-def test_no_press_frames_gives_nulls():
+def test_no_press_frames_gives_nulls_where_undefined():
     gt = np.zeros((2, 64, 64), np.float32)
-    m = compute_metrics(gt + 0.25, gt, np.zeros((2, 2)), G)
+    m = compute_metrics(gt + 0.25, gt, np.array([[-15.0, 15.0], [-15.0, 15.0]]), G)
     assert m["mae_kpa"] == pytest.approx(0.25)
-    assert m["force_error_pct"] is None and m["worst_region_mae_kpa"] is None
-    assert m["region_mae_kpa"] == [[None] * 4] * 4
+    assert m["force_error_pct"] is None and m["cop_error_mm"] is None and m["iou"] is None
+    # Regions count every frame by its press position: out-of-contact frames too.
+    assert m["worst_region_mae_kpa"] == pytest.approx(0.25) and m["worst_region_cell"] == [0, 3]
+    assert sum(v is None for row in m["region_mae_kpa"] for v in row) == 15
     strict_json(m)
 
 

@@ -67,7 +67,7 @@ DEFINITIONS = {
     "an empty prediction is measured from the sensor centre",
     "iou": "Otsu foreground of the prediction vs the true contact (Otsu of the label, = gt > 0 "
     "for hard-edged labels) on frames with F_gt >= 2 N; empty prediction -> 0",
-    "region_mae_kpa": "per-frame MAE of frames with F_gt > 0 grouped by true press position on "
+    "region_mae_kpa": "per-frame MAE of all evaluated frames grouped by their press's commanded position on "
     "a 4x4 grid of the field of view; [row][col] in image orientation; null = no frames",
 }
 

@@ -22,9 +22,11 @@ code's defects):
   truth binarised by the same Otsu rule (:func:`gt_contact_masks`): for a
   hard-edged label that is exactly ``gt > 0``; for an anti-aliased one it is the
   finger's disk, and a perfect prediction scores 1.
-* **region MAE** (kPa): the per-frame MAE of press frames (``F_gt > 0``) grouped by
-  the true press position on a 4 x 4 grid over the sensor's field of view (cells of
-  ``sensor_size_mm / 4`` = 10.25 mm); the worst cell is reported. Cell ``[i][j]`` is
+* **region MAE** (kPa): the per-frame MAE of every evaluated frame, grouped by the
+  commanded position of its press on a 4 x 4 grid over the sensor's field of view
+  (cells of ``sensor_size_mm / 4`` = 10.25 mm); the worst cell is reported. All
+  frames of a press count (approach, contact, release), as in the overall MAE, so
+  the two are comparable (paper: 0.79 kPa overall, 1.05 kPa worst cell). Cell ``[i][j]`` is
   image row-band ``i`` (top = printer +Y) and column-band ``j`` (left = printer +X),
   the same orientation as the pressure maps. Cells without frames are ``None``.
 
@@ -167,7 +169,7 @@ class FrameMetrics:
 
     @property
     def force_mask(self) -> np.ndarray:
-        """(B,) bool: frames that count for the total-force error and regions."""
+        """(B,) bool: frames that count for the total-force error."""
         return self.force_gt_n > 0
 
     @property
@@ -275,9 +277,8 @@ class MetricsAccumulator:
         self.cop_sum += float(fm.cop_error_mm[shape].sum())
         self.cop_empty += int(np.isnan(fm.cop_pred_mm[shape, 0]).sum())
         self.iou_sum += float(fm.iou[shape].sum())
-        cells = fm.cell[force]
-        np.add.at(self.region_sum, (cells[:, 0], cells[:, 1]), fm.mae_kpa[force])
-        np.add.at(self.region_count, (cells[:, 0], cells[:, 1]), 1)
+        np.add.at(self.region_sum, (fm.cell[:, 0], fm.cell[:, 1]), fm.mae_kpa)
+        np.add.at(self.region_count, (fm.cell[:, 0], fm.cell[:, 1]), 1)
 
     def result(self) -> dict:
         """The metrics as a JSON-ready dict (floats, ints, None; no NaN).
@@ -285,7 +286,7 @@ class MetricsAccumulator:
         Keys: mae_kpa, force_error_pct, cop_error_mm, iou, region_mae_kpa (grid x grid
         nested list, None for empty cells), region_frames, worst_region_mae_kpa,
         worst_region_cell ([row, col]), frames, force_frames, cop_frames, iou_frames,
-        cop_empty_prediction_frames, region_press_frames, force_gt_mean_n.
+        cop_empty_prediction_frames, region_frames_total, force_gt_mean_n.
         A metric with no eligible frames is None.
         """
 
@@ -318,7 +319,7 @@ class MetricsAccumulator:
             "cop_frames": self.shape_frames,
             "iou_frames": self.shape_frames,
             "cop_empty_prediction_frames": self.cop_empty,
-            "region_press_frames": int(self.region_count.sum()),
+            "region_frames_total": int(self.region_count.sum()),
             "force_gt_mean_n": mean(self.force_gt_sum, self.force_frames),
         }
 

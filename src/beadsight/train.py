@@ -543,6 +543,8 @@ class _Trainer:
                 "source": "beadsight train",
                 "beadsight_version": __version__,
                 "dataset": str(Path(config.data).resolve()),
+                "dataset_source": self.ds.provenance.get("source"),
+                "fps": float(self.ds.fps),  # camera rate: the predictor's gap detection uses it
                 "created_unix": time.time(),
             },
         )
