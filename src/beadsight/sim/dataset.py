@@ -1,0 +1,182 @@
+"""Record a simulated calibration session as a dataset in this project's format.
+
+Ground truth is made the way a real rig makes it, so nothing leaks that a real
+recording would not hold:
+
+* **force** is the simulated *scale's* readings (HX711 rate, averaging, noise,
+  tare drift, two decimals), linearly interpolated to the frame timestamps, as
+  the processing of a real recording interpolates its force log. The true
+  contact force is never stored;
+* **position** is the *commanded* printer XY (the last press position sent);
+* **valid** is False for frames outside the span of the scale's log (before its
+  first reading or after its last), as for real recordings.
+
+Frames stream to :class:`~beadsight.data.dataset.DatasetWriter` in small chunks
+(memory stays bounded for any number of presses); a frame is written as soon as
+the scale has read past its timestamp.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from beadsight import __version__
+from beadsight.config import REFERENCE_G_TO_N
+from beadsight.data.dataset import DatasetWriter
+from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
+from beadsight.sim.session import SimFrame, SimulatedSession
+
+logger = logging.getLogger(__name__)
+
+WRITE_CHUNK_FRAMES = 64  # frames buffered before a write
+
+
+class SimulationError(ValueError):
+    """Bad arguments for a simulation (the message names the argument or file)."""
+
+
+def sim_config_for(
+    n_beads: int | None = None,
+    image_size: int | None = None,
+    fps: float | None = None,
+    config: SimConfig | None = None,
+) -> SimConfig:
+    """A :class:`SimConfig`: ``config`` (default: the preset for ``n_beads``, or 100 beads)
+    with ``n_beads``, ``image_size`` and ``fps`` applied where given."""
+    if config is None:
+        beads = 100 if n_beads is None else int(n_beads)
+        config = (
+            SimConfig.preset(beads) if beads in PRESET_BEAD_COUNTS else SimConfig(n_beads=beads)
+        )
+    changes = {}
+    if n_beads is not None and n_beads != config.n_beads:
+        changes["n_beads"] = int(n_beads)
+    if image_size is not None:
+        changes["image_size_px"] = int(image_size)
+    if fps is not None:
+        changes["fps"] = float(fps)
+    return dataclasses.replace(config, **changes) if changes else config
+
+
+class _ForceLog:
+    """The scale's readings so far, and interpolation of them to frame times."""
+
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.grams: list[float] = []
+
+    def add(self, readings) -> None:
+        for t, g in readings:
+            self.t.append(t)
+            self.grams.append(g)
+
+    @property
+    def last_s(self) -> float:
+        return self.t[-1] if self.t else -np.inf
+
+    def at(self, timestamp_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Force (N) interpolated at ``timestamp_s`` and ``valid`` (inside the log's span)."""
+        if not self.t:
+            return np.zeros(len(timestamp_s)), np.zeros(len(timestamp_s), bool)
+        t = np.asarray(self.t)
+        force = np.interp(timestamp_s, t, np.asarray(self.grams)) * REFERENCE_G_TO_N
+        valid = (timestamp_s >= t[0]) & (timestamp_s <= t[-1])
+        return force, valid
+
+
+def simulate_dataset(
+    out: str | Path,
+    presses: int,
+    seed: int = 0,
+    n_beads: int | None = None,
+    image_size: int | None = None,
+    fps: float | None = None,
+    *,
+    config: SimConfig | None = None,
+    compression: str | None = None,
+    pouches: int = 1,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Simulate ``presses`` presses and write them as a dataset at ``out``. Returns the path.
+
+    n_beads / image_size / fps override ``config`` (default: the preset for
+    ``n_beads``, 100 beads, 256 px, 30 fps). compression: HDF5 filter for the
+    frames (None or "gzip"/"lzf"). pouches: spread the presses over this many
+    pouches (a fresh pouch every ``ceil(presses / pouches)`` presses), so a model
+    trained on the dataset meets more than one bead arrangement and look. An
+    existing ``out`` is refused unless ``overwrite``. Frames are RGB; provenance
+    records the seed, the pouches and the full config.
+    """
+    out = Path(out)
+    if isinstance(presses, bool) or int(presses) != presses or presses < 1:
+        raise SimulationError(f"presses must be a positive integer, got {presses!r}")
+    if out.exists() and not overwrite:
+        raise SimulationError(f"{out}: already exists; choose another --out or remove it")
+    if isinstance(pouches, bool) or int(pouches) != pouches or not 1 <= pouches <= presses:
+        raise SimulationError(f"pouches must be an integer in [1, presses], got {pouches!r}")
+    if compression not in (None, "gzip", "lzf"):
+        raise SimulationError(f"compression must be None, 'gzip' or 'lzf', got {compression!r}")
+    cfg = sim_config_for(n_beads, image_size, fps, config)
+    per_pouch = math.ceil(presses / pouches) if pouches > 1 else None
+    session = SimulatedSession(cfg, seed, int(presses), presses_per_pouch=per_pouch)
+    provenance = {
+        "source": "sim",
+        "simulator": {
+            "seed": int(seed),
+            "presses": int(presses),
+            "pouches": int(pouches),
+            "presses_per_pouch": per_pouch,
+            "config": cfg.to_dict(),
+            "beadsight_version": __version__,
+        },
+        "force": "simulated HX711 scale readings (grams), linearly interpolated to frame times",
+        "position": "commanded printer XY, mm from the sensor centre",
+    }
+    total = session.num_frames()
+    logger.info(
+        "simulating %d presses (%d frames, %d px) -> %s", presses, total, cfg.image_size_px, out
+    )
+    with DatasetWriter(
+        out, cfg.geometry, fps=cfg.fps, provenance=provenance, compression=compression
+    ) as writer:
+        _record(session, writer, total, progress)
+    return out
+
+
+def _record(
+    session: SimulatedSession, writer: DatasetWriter, total: int | None, progress: bool
+) -> None:
+    from tqdm import tqdm
+
+    log = _ForceLog()
+    pending: list[SimFrame] = []
+    with tqdm(total=total, unit="frame", desc="simulate", disable=not progress) as bar:
+        for frame in session:
+            log.add(frame.scale_readings)
+            pending.append(frame)
+            # A frame can be written once the scale has read past it.
+            ready = sum(1 for f in pending if f.timestamp_s <= log.last_s)
+            if ready >= WRITE_CHUNK_FRAMES:
+                _flush(writer, pending[:ready], log)
+                del pending[:ready]
+            bar.update(1)
+        if pending:
+            _flush(writer, pending, log)
+
+
+def _flush(writer: DatasetWriter, frames: list[SimFrame], log: _ForceLog) -> None:
+    t = np.array([f.timestamp_s for f in frames])
+    force, valid = log.at(t)
+    writer.append(
+        np.stack([f.frame_rgb for f in frames]),
+        force,
+        np.stack([f.commanded_xy_mm for f in frames]),
+        valid,
+        t,
+    )

@@ -1,0 +1,379 @@
+"""The camera's view of the pouch in sensor space: beads, bubbles, LEDs, lens, noise.
+
+The camera looks at the beads from behind, through an acrylic window; the finger
+side of the pouch is covered by a black sheet, so the finger itself is never seen.
+A frame is composed as:
+
+1. a static background (black cover through water, faint mottling of the vinyl,
+   the pouch's welded seam at the border), rendered once;
+2. bubbles, then beads, alpha-composited back to front from pre-rendered
+   *sprites*: a translucent sphere with a dark refraction rim, a soft caustic,
+   and four specular highlights (one per corner LED) whose arrangement depends on
+   where the bead sits; a compressed bead is larger and shows a flat contact
+   patch with dimmed highlights. Sprites are cached by quantised radius,
+   flatness, image zone and sub-pixel phase, so a frame is ~100 small blits;
+3. the LEDs' illumination and the lens's vignetting (one static gain map), a
+   per-frame brightness flicker, static glare of the LEDs on the acrylic;
+4. rounding to uint8, sensor noise (pre-generated noise tiles at random offsets,
+   added with saturating uint8 arithmetic) and optional MJPG-like JPEG compression.
+
+All randomness comes from the generator passed in (noise offsets, flicker), so a
+renderer never disturbs the mechanics' random stream.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from beadsight.sim.config import SimConfig
+from beadsight.sim.pouch import PouchView
+
+# --- sprite quantisation ------------------------------------------------------------
+RADIUS_STEP = 0.025  # sprites exist for radii on a geometric grid with this relative step
+FLAT_LEVELS = 7  # flatness levels 0..1
+ZONES = 5  # highlight arrangement quantised on a ZONES x ZONES grid over the image
+PHASES = 4  # sub-pixel positions per pixel, per axis (frames up to FINE_PHASE_MAX_PX)
+FINE_PHASE_MAX_PX = 320  # larger images (the one behind raw frames) use whole-pixel positions
+SPRITE_CACHE_BYTES = 96 * 2**20  # the oldest quarter of the sprites is dropped past this
+_LOG_STEP = math.log1p(RADIUS_STEP)
+
+# --- appearance (radiance units: 0..255 under full illumination) --------------------
+BEAD_BASE = 205.0  # body brightness of a clear bead at its centre
+BEAD_OPACITY = 0.9  # beads are translucent: the background shows through a little
+BEAD_SHADING = 0.45  # body brightness falls by this fraction from centre to rim
+RIM_DARKEN = 0.62  # refraction makes a dark ring at the bead's outline
+RIM_WIDTH = 0.14  # of the radius
+CAUSTIC_GAIN = 0.35  # light focused by the bead, opposite its highlights
+CAUSTIC_SIGMA = 0.32  # of the radius
+SPECULAR_PEAK = 300.0  # peak of each LED's specular highlight (saturates)
+SPECULAR_SIGMA = 0.075  # of the radius (at least SPECULAR_MIN_PX)
+SPECULAR_MIN_PX = 0.55
+SPECULAR_SPREAD = 0.21  # the four highlights sit this far (of the radius) from their centre
+HIGHLIGHT_SHIFT = 0.32  # the highlight cluster moves toward the image centre (of the radius)
+CONTACT_TONE = 0.74  # a flattened face against the window is flatter and a little darker
+CONTACT_RADIUS = 0.82  # radius of the full contact patch (of the apparent radius)
+CONTACT_RING = 40.0  # bright contact line at the patch's edge
+CONTACT_SPECULAR_LOSS = 0.85  # highlights fade on a flattened bead
+BUBBLE_CENTRE = 150.0  # a bubble's bright centre (it acts as a lens)
+BUBBLE_RING = 22.0  # its thick dark ring (total internal reflection)
+BUBBLE_RING_WIDTH = 0.38  # of the radius
+BUBBLE_CENTRE_ALPHA = 0.35
+BUBBLE_RING_ALPHA = 0.92
+LED_COLOUR_RGB = (1.0, 0.97, 0.92)  # warm-white LEDs
+AMBIENT_LIGHT = 0.22  # light scattered inside the housing, relative to the LEDs' peak
+MOTTLE_AMPLITUDE = 5.0  # low-frequency texture of the black cover, radiance units
+MOTTLE_SCALE_MM = 3.0
+SEAM_LEVEL = 85.0  # the pouch's welded seam at the border of the field of view
+GLARE_LEVEL = 9.0  # reflections of the LEDs on the acrylic
+GLARE_SIGMA_MM = 3.0
+NOISE_TILES = 2  # pre-generated noise fields, sampled at random offsets
+
+
+class SensorRenderer:
+    """Render :class:`PouchView` states as ``(S, S, 3)`` uint8 RGB sensor-space frames.
+
+    size_px: the frame side S. appearance_seed: seeds the static look of the pouch
+    (the same for every renderer of one pouch, whatever its size). rng: per-frame
+    randomness (noise offsets, flicker). noise: add sensor noise (off for the
+    high-resolution image behind raw frames, which gets its noise in raw space).
+    jpeg_quality: JPEG-compress each frame (None: off).
+    """
+
+    def __init__(
+        self,
+        config: SimConfig,
+        size_px: int,
+        appearance_seed: np.random.SeedSequence | int,
+        rng: np.random.Generator,
+        *,
+        noise: bool = True,
+        jpeg_quality: int | None = None,
+    ):
+        self.config = config
+        self.size = int(size_px)
+        self.rng = rng
+        self.noise = noise
+        self.jpeg_quality = jpeg_quality
+        self.px_per_mm = self.size / config.sensor_size_mm
+        self._background = self._make_background(np.random.default_rng(appearance_seed))
+        self._illumination = self._make_illumination()
+        self._glare = self._make_glare()
+        self._scratch = np.empty((self.size, self.size, 3), np.float32)
+        self._noise_pad = max(8, self.size // 4)
+        self._noise = noise_tiles(
+            rng, config.noise_std if noise else 0.0, (self.size + self._noise_pad,) * 2
+        )
+        tints = np.asarray(config.bead_tints_rgb, np.float32)
+        self._tints = tints
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._cache_bytes = 0
+        self._max_rq = int(math.ceil(math.log(self.size) / _LOG_STEP)) + 1
+        self.phases = PHASES if self.size <= FINE_PHASE_MAX_PX else 1
+        # Half-size of the sprite for each quantised radius.
+        radii = np.exp(np.arange(self._max_rq + 1) * _LOG_STEP)
+        self._half = np.ceil(radii + 1.5).astype(np.int64)
+
+    # --- static layers ----------------------------------------------------------------
+    def _pixel_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        """x_mm (1, S) of column centres, y_mm (S, 1) of row centres (printer frame)."""
+        centres = (np.arange(self.size) + 0.5) / self.size
+        coord = (0.5 - centres) * self.config.sensor_size_mm
+        return coord[None, :], coord[:, None]
+
+    def _make_background(self, rng: np.random.Generator) -> np.ndarray:
+        cfg = self.config
+        s = self.size
+        x, y = self._pixel_mm()
+        # Low-frequency mottling: blurred noise drawn on a fixed coarse grid, so it looks
+        # the same at every image size.
+        coarse = max(4, int(cfg.sensor_size_mm / MOTTLE_SCALE_MM))
+        field = rng.standard_normal((coarse, coarse)).astype(np.float32)
+        field = cv2.resize(field, (s, s), interpolation=cv2.INTER_CUBIC)
+        level = cfg.background_level + MOTTLE_AMPLITUDE * field
+        outside = np.maximum(np.abs(x), np.abs(y)) > cfg.pouch_half_mm
+        level = np.where(outside, SEAM_LEVEL + 2 * MOTTLE_AMPLITUDE * field, level)
+        bg = np.repeat(level[..., None], 3, axis=2).astype(np.float32)
+        bg *= np.array([0.92, 0.97, 1.0], np.float32)  # water over black vinyl: slightly cool
+        return np.ascontiguousarray(np.clip(bg, 0, 255))
+
+    def _led_positions_mm(self) -> list[tuple[float, float]]:
+        a = self.config.led_offset_mm
+        return [(sx * a, sy * a) for sx in (-1, 1) for sy in (-1, 1)]
+
+    def _make_illumination(self) -> np.ndarray:
+        cfg = self.config
+        x, y = self._pixel_mm()
+        h = cfg.led_height_mm
+        light = np.zeros((self.size, self.size), np.float64)
+        for lx, ly in self._led_positions_mm():
+            rho2 = (x - lx) ** 2 + (y - ly) ** 2
+            light += h**3 / (rho2 + h * h) ** 1.5  # Lambertian point source, 1 directly below
+        light = light / light.max() + AMBIENT_LIGHT
+        r2 = (x * x + y * y) / (cfg.sensor_size_mm**2 / 2)  # 1 at the image corners
+        light *= 1.0 - cfg.vignetting * r2
+        light /= light.max()
+        illum = light[..., None] * np.asarray(LED_COLOUR_RGB)[None, None, :]
+        return np.ascontiguousarray(illum.astype(np.float32))
+
+    def _make_glare(self) -> np.ndarray:
+        x, y = self._pixel_mm()
+        glare = np.zeros((self.size, self.size), np.float64)
+        for lx, ly in self._led_positions_mm():
+            glare += np.exp(-((x - lx) ** 2 + (y - ly) ** 2) / (2 * GLARE_SIGMA_MM**2))
+        out = GLARE_LEVEL * glare[..., None] * np.asarray(LED_COLOUR_RGB)[None, None, :]
+        return np.ascontiguousarray(np.rint(out).astype(np.uint8))
+
+    # --- sprites ------------------------------------------------------------------------
+    def _keys(self, view: PouchView) -> tuple[list, ...]:
+        """Sprite keys and clipped blit rectangles (image and sprite) for every visible object."""
+        s = self.size
+        ppm = self.px_per_mm
+        smm = self.config.sensor_size_mm
+        phases = self.phases
+        row = (0.5 - view.xy_mm[:, 1] / smm) * s  # continuous pixel coordinates
+        col = (0.5 - view.xy_mm[:, 0] / smm) * s
+        r_px = np.maximum(view.radius_mm * ppm, 0.5)
+        rq = np.clip(np.rint(np.log(r_px) / _LOG_STEP), 0, self._max_rq).astype(np.int64)
+        fq = np.clip(np.rint(view.flatness * (FLAT_LEVELS - 1)), 0, FLAT_LEVELS - 1)
+        zr = np.clip((row / s * ZONES).astype(np.int64), 0, ZONES - 1)
+        zc = np.clip((col / s * ZONES).astype(np.int64), 0, ZONES - 1)
+        ar, ac = np.floor(row), np.floor(col)
+        pr = np.clip(((row - ar) * phases).astype(np.int64), 0, phases - 1)
+        pc = np.clip(((col - ac) * phases).astype(np.int64), 0, phases - 1)
+        key = view.tint.astype(np.int64) + 1  # 0 = bubble
+        for value, size in (
+            (rq, self._max_rq + 1),
+            (fq.astype(np.int64), FLAT_LEVELS),
+            (zr, ZONES),
+            (zc, ZONES),
+            (pr, PHASES),
+            (pc, PHASES),
+        ):
+            key = key * size + value
+        h = self._half[rq]
+        r0, c0 = ar.astype(np.int64) - h, ac.astype(np.int64) - h
+        r1, c1 = r0 + 2 * h + 1, c0 + 2 * h + 1
+        visible = (r1 > 0) & (c1 > 0) & (r0 < s) & (c0 < s)
+        sr0, sc0 = np.maximum(-r0, 0), np.maximum(-c0, 0)
+        sr1 = 2 * h + 1 - np.maximum(r1 - s, 0)
+        sc1 = 2 * h + 1 - np.maximum(c1 - s, 0)
+        cols = (
+            key,
+            np.maximum(r0, 0),
+            np.minimum(r1, s),
+            np.maximum(c0, 0),
+            np.minimum(c1, s),
+            sr0,
+            sr1,
+            sc0,
+            sc1,
+        )
+        return tuple(c[visible].tolist() for c in cols)
+
+    def _sprite(self, key: int) -> tuple[np.ndarray, np.ndarray]:
+        sprite = self._cache.get(key)
+        if sprite is None:
+            if self._cache_bytes > SPRITE_CACHE_BYTES:
+                for old in list(self._cache)[: len(self._cache) // 4]:  # oldest first
+                    a, b = self._cache.pop(old)
+                    self._cache_bytes -= a.nbytes + b.nbytes
+            sprite = self._make_sprite(key)
+            self._cache[key] = sprite
+            self._cache_bytes += sprite[0].nbytes + sprite[1].nbytes
+        return sprite
+
+    def _make_sprite(self, key: int) -> tuple[np.ndarray, np.ndarray]:
+        """(1 - alpha) (h, h, 3) f32 and premultiplied colour (h, h, 3) f32, radiance units."""
+        key, pc = divmod(key, PHASES)
+        key, pr = divmod(key, PHASES)
+        key, zc = divmod(key, ZONES)
+        key, zr = divmod(key, ZONES)
+        key, fq = divmod(key, FLAT_LEVELS)
+        tint, rq = divmod(key, self._max_rq + 1)
+        r = math.exp(rq * _LOG_STEP)
+        half = int(self._half[rq])
+        k = np.arange(2 * half + 1, dtype=np.float32) - half + 0.5
+        dy = (k - (pr + 0.5) / self.phases)[:, None]
+        dx = (k - (pc + 0.5) / self.phases)[None, :]
+        flat = fq / (FLAT_LEVELS - 1)
+        # Position of the bead in the image, -0.5..0.5, for the highlight arrangement.
+        q = np.array([(zr + 0.5) / ZONES - 0.5, (zc + 0.5) / ZONES - 0.5])
+        if tint == 0:
+            alpha, premult = _bubble(dx, dy, r, flat, q, self._led_q())
+        else:
+            alpha, premult = _bead(dx, dy, r, flat, q, self._led_q(), self._tints[tint - 1])
+        # Three-channel (not broadcast) so the blit is two plain cv2 calls.
+        inv_alpha = np.repeat((1.0 - alpha)[..., None], 3, axis=2).astype(np.float32)
+        return inv_alpha, np.ascontiguousarray(premult.astype(np.float32))
+
+    def _led_q(self) -> np.ndarray:
+        """(4, 2) LED positions in normalised image coordinates (row, col), -0.5..0.5."""
+        smm = self.config.sensor_size_mm
+        return np.array([(-ly / smm, -lx / smm) for lx, ly in self._led_positions_mm()])
+
+    # --- frames -------------------------------------------------------------------------
+    def composite(self, view: PouchView) -> np.ndarray:
+        """Radiance image (S, S, 3) float32 before illumination (a reused buffer)."""
+        out = self._scratch
+        np.copyto(out, self._background)
+        cache, make = self._cache, self._sprite
+        multiply, add = cv2.multiply, cv2.add
+        for key, r0, r1, c0, c1, sr0, sr1, sc0, sc1 in zip(*self._keys(view), strict=True):
+            sprite = cache.get(key)
+            inv_alpha, premult = sprite if sprite is not None else make(key)
+            patch = out[r0:r1, c0:c1]
+            multiply(patch, inv_alpha[sr0:sr1, sc0:sc1], dst=patch)  # in place: "over"
+            add(patch, premult[sr0:sr1, sc0:sc1], dst=patch)
+        return out
+
+    def render(self, view: PouchView) -> np.ndarray:
+        """(S, S, 3) uint8 RGB frame."""
+        out = self.composite(view)
+        gain = 1.0
+        if self.config.flicker > 0:
+            gain += self.config.flicker * float(self.rng.standard_normal())
+        cv2.multiply(out, self._illumination, dst=out, scale=gain)
+        frame = cv2.convertScaleAbs(out)  # round and saturate to 0..255
+        cv2.add(frame, self._glare, dst=frame)  # uint8 from here: saturating and fast
+        if self._noise:
+            plus, minus = self._noise[int(self.rng.integers(len(self._noise)))]
+            oy, ox = (int(v) for v in self.rng.integers(0, self._noise_pad, 2))
+            s = self.size
+            cv2.add(frame, plus[oy : oy + s, ox : ox + s], dst=frame)
+            cv2.subtract(frame, minus[oy : oy + s, ox : ox + s], dst=frame)
+        if self.jpeg_quality is not None:
+            frame = jpeg_roundtrip(frame, self.jpeg_quality, rgb=True)
+        return frame
+
+
+def noise_tiles(
+    rng: np.random.Generator, std: float, hw: tuple[int, int]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Gaussian noise fields (rounded) as (positive part, negative part) uint8 pairs.
+
+    Adding the first and subtracting the second with saturating uint8 arithmetic
+    adds the noise to a frame; frames sample the tiles at random offsets.
+    """
+    if std <= 0:
+        return []
+    tiles = []
+    for _ in range(NOISE_TILES):
+        n = np.rint(rng.normal(0.0, std, (*hw, 3)))
+        tiles.append((np.clip(n, 0, 255).astype(np.uint8), np.clip(-n, 0, 255).astype(np.uint8)))
+    return tiles
+
+
+def jpeg_roundtrip(frame: np.ndarray, quality: int, rgb: bool) -> np.ndarray:
+    """Compress and decompress a uint8 colour frame as JPEG (the camera's MJPG stream)."""
+    bgr = cv2.cvtColor(frame, cv2.COLOR_RGB2BGR) if rgb else frame
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:  # pragma: no cover - OpenCV always encodes uint8 colour images
+        raise RuntimeError("JPEG encoding failed")
+    out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    return cv2.cvtColor(out, cv2.COLOR_BGR2RGB) if rgb else out
+
+
+def _gauss(dx: np.ndarray, dy: np.ndarray, cx: float, cy: float, sigma: float) -> np.ndarray:
+    """Separable 2-D Gaussian (peak 1) on the sprite grid: an outer product of two 1-D ones."""
+    k = -0.5 / (sigma * sigma)
+    return np.exp(k * (dy - cy) ** 2) * np.exp(k * (dx - cx) ** 2)
+
+
+def _highlights(
+    dx: np.ndarray, dy: np.ndarray, r: float, q: np.ndarray, leds: np.ndarray, sigma: float
+) -> np.ndarray:
+    """Sum of the four LEDs' specular spots (peak 1 each), arranged by image position q."""
+    centre = -HIGHLIGHT_SHIFT * (q / 0.5) * r  # toward the image centre
+    spots = 0.0
+    for led in leds:
+        v = led - q
+        v = v / max(float(np.hypot(*v)), 1e-6)
+        cy, cx = centre + SPECULAR_SPREAD * r * v
+        spots = spots + _gauss(dx, dy, cx, cy, sigma)
+    return spots
+
+
+def _bead(dx, dy, r, flat, q, leds, tint) -> tuple[np.ndarray, np.ndarray]:
+    """A translucent bead: alpha (h, w) and premultiplied colour (h, w, 3), radiance units."""
+    dist = np.sqrt(dx * dx + dy * dy)
+    d = dist / r
+    edge = np.clip(r - dist + 0.5, 0.0, 1.0)  # anti-aliased outline
+    inside = np.clip(1.0 - d * d, 0.0, 1.0)
+    body = BEAD_BASE * (1.0 - BEAD_SHADING + BEAD_SHADING * np.sqrt(inside))
+    body *= 1.0 - RIM_DARKEN * np.exp(-(((1.0 - d) / RIM_WIDTH) ** 2))
+    centre = HIGHLIGHT_SHIFT * (q / 0.5) * r * 0.8  # caustic opposite the highlights
+    body += CAUSTIC_GAIN * BEAD_BASE * _gauss(dx, dy, centre[1], centre[0], CAUSTIC_SIGMA * r)
+    if flat > 0:
+        rc = CONTACT_RADIUS * r * math.sqrt(flat)
+        patch = np.clip(rc - dist + 0.5, 0.0, 1.0)
+        flat_tone = BEAD_BASE * CONTACT_TONE
+        body = body * (1 - patch * flat) + flat_tone * patch * flat
+        ring = np.exp(-(((dist - rc) / max(0.08 * r, 0.5)) ** 2))
+        body += CONTACT_RING * flat * ring
+    sigma = max(SPECULAR_SIGMA * r * (1 + 1.5 * flat), SPECULAR_MIN_PX)
+    spec = (
+        SPECULAR_PEAK * (1 - CONTACT_SPECULAR_LOSS * flat) * _highlights(dx, dy, r, q, leds, sigma)
+    )
+    alpha = edge * BEAD_OPACITY
+    # Premultiplied: the body is seen through alpha, the specular reflection is added light.
+    premult = (body * alpha)[..., None] * np.asarray(tint)[None, None, :] + (spec * edge)[..., None]
+    return alpha, premult
+
+
+def _bubble(dx, dy, r, flat, q, leds) -> tuple[np.ndarray, np.ndarray]:
+    """An air bubble: thick dark ring, bright centre, strong highlights (alpha, premult)."""
+    dist = np.sqrt(dx * dx + dy * dy)
+    d = dist / r
+    edge = np.clip(r - dist + 0.5, 0.0, 1.0)
+    width = BUBBLE_RING_WIDTH * (1 - 0.5 * flat)
+    ring = np.clip((d - (1 - width)) / max(width * 0.5, 1e-3), 0.0, 1.0)
+    ring = ring * ring * (3 - 2 * ring)
+    level = BUBBLE_CENTRE * (1 - ring) + BUBBLE_RING * ring
+    alpha = edge * (BUBBLE_CENTRE_ALPHA * (1 - ring) + BUBBLE_RING_ALPHA * ring)
+    sigma = max(SPECULAR_SIGMA * 1.3 * r, SPECULAR_MIN_PX)
+    spec = 1.2 * SPECULAR_PEAK * _highlights(dx, dy, 0.8 * r, q, leds, sigma)
+    premult = np.repeat((level * alpha + spec * edge)[..., None], 3, axis=2)
+    return alpha, premult

@@ -1,0 +1,143 @@
+"""``beadsight demo`` end to end through the real CLI, at a small size."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from beadsight.cli import main
+from beadsight.demo import DemoError, shipped_model_path
+
+REPORT_FILES = (
+    "index.html",
+    "demo.json",
+    "metrics.json",
+    "predictions.h5",
+    "animation.gif",
+    "examples.png",
+    "force_traces.png",
+    "region_error.png",
+)
+
+
+def test_demo_with_a_checkpoint(tmp_path, tiny_model, capsys):
+    checkpoint = tiny_model.save(tmp_path / "tiny.pt")
+    out = tmp_path / "report"
+    argv = [
+        "demo",
+        "--checkpoint",
+        str(checkpoint),
+        "--out",
+        str(out),
+        "--presses",
+        "2",
+        "--max-frames",
+        "24",
+        "--animation-frames",
+        "12",
+        "--no-progress",
+    ]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    for row in (
+        "pressure MAE (kPa)",
+        "total-force error (%)",
+        "contact IoU",
+        "paper",
+        "baseline: zero",
+        "baseline: mean_gt",
+    ):
+        assert row in printed
+    assert "0.790" in printed  # the paper's MAE beside this run's
+    for name in REPORT_FILES:
+        assert (out / name).is_file(), name
+    assert not (out / "heldout.h5").exists()  # the simulated data is temporary
+    summary = json.loads((out / "demo.json").read_text())
+    assert summary["seed"] == 90_210 and summary["frames_evaluated"] == 24
+    assert summary["sim_config"]["image_size_px"] == 64  # the model's size
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 24 and "baselines" in metrics
+    html = (out / "index.html").read_text()
+    assert "animation.gif" in html and "pressure MAE" in html
+    # Running again into the same report folder replaces it.
+    again = [
+        "demo",
+        "--checkpoint",
+        str(checkpoint),
+        "--out",
+        str(out),
+        "--presses",
+        "1",
+        "--max-frames",
+        "4",
+        "--animation-frames",
+        "2",
+        "--keep-data",
+        "--no-progress",
+    ]
+    assert main(again) == 0
+    assert (out / "heldout.h5").is_file()
+    assert json.loads((out / "demo.json").read_text())["frames_evaluated"] == 4
+
+
+def test_demo_refuses_a_foreign_folder(tmp_path, tiny_model, capsys):
+    checkpoint = tiny_model.save(tmp_path / "tiny.pt")
+    foreign = tmp_path / "stuff"
+    foreign.mkdir()
+    (foreign / "thesis.tex").write_text("keep me")
+    assert main(["demo", "--checkpoint", str(checkpoint), "--out", str(foreign)]) == 1
+    err = capsys.readouterr().err
+    assert str(foreign) in err and "not a beadsight demo report" in err
+    assert (foreign / "thesis.tex").read_text() == "keep me"
+
+
+def test_shipped_model_is_found_or_named():
+    try:
+        path = shipped_model_path()
+    except DemoError as e:
+        assert "sim_model.pt" in str(e) and "--checkpoint" in str(e)
+    else:
+        assert path.is_file() and path.name == "sim_model.pt"
+
+
+def test_missing_checkpoint_is_a_clear_error(tmp_path, capsys):
+    missing = tmp_path / "nope.pt"
+    assert main(["demo", "--checkpoint", str(missing), "--out", str(tmp_path / "r")]) == 1
+    assert str(missing) in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_demo_train_from_scratch(tmp_path, capsys):
+    out = tmp_path / "trained"
+    argv = [
+        "demo",
+        "--train",
+        "--out",
+        str(out),
+        "--presses",
+        "1",
+        "--max-frames",
+        "12",
+        "--train-presses",
+        "4",
+        "--train-steps",
+        "3",
+        "--train-batch-size",
+        "2",
+        "--train-width",
+        "4",
+        "--train-image-size",
+        "32",
+        "--animation-frames",
+        "4",
+        "--no-progress",
+    ]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "pressure MAE (kPa)" in printed and "would take" in printed
+    summary = json.loads((out / "demo.json").read_text())
+    estimate = summary["full_run_estimate"]
+    assert estimate["measured_steps"] == 3 and estimate["planned_steps"] > 10_000
+    assert estimate["reference_size_hours"] > 0
+    assert (out / "run" / "best.pt").is_file() and (out / "animation.gif").is_file()
