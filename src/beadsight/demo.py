@@ -77,11 +77,11 @@ class DemoConfig(_Serializable):
 
     out: str = DEFAULT_OUT  # report folder
     checkpoint: str | None = None  # None: the shipped model
-    presses: int = 6  # held-out presses to simulate
+    presses: int = 10  # held-out presses to simulate
     pouches: int = 3  # ... on this many fresh pouches (never seen in training)
     seed: int = DEMO_SEED  # of the held-out presses
     beads: int | None = None  # None: the model's training pouch, else the 100-bead preset
-    max_frames: int | None = 180  # frames evaluated, spread evenly over the presses
+    max_frames: int | None = 800  # frames evaluated, spread evenly over the presses
     batch_size: int = 16
     device: str = "auto"
     keep_data: bool = False  # keep the simulated held-out dataset in the report folder
