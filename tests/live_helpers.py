@@ -10,6 +10,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 import torch
 from conftest import make_press_arrays, synthetic_press_frames
 
@@ -139,3 +140,15 @@ def wait_until(predicate, timeout_s: float = 20.0, what: str = "condition") -> N
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         time.sleep(0.01)
+
+
+@pytest.fixture(autouse=True)
+def no_thread_leaks():
+    """Every test must stop all the threads it started (autouse where imported)."""
+    before = set(threading.enumerate())
+    yield
+    wait_until(
+        lambda: not [t for t in threading.enumerate() if t not in before and t.is_alive()],
+        10,
+        "threads of the test to end",
+    )

@@ -5,7 +5,6 @@ from __future__ import annotations
 import base64
 import json
 import math
-import threading
 import time
 import urllib.error
 import urllib.request
@@ -13,12 +12,13 @@ import urllib.request
 import cv2
 import numpy as np
 import pytest
-from live_helpers import (
+from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
     BACKEND,
     TINY,
     WINDOW,
     ScriptedSource,
     StatusLog,
+    no_thread_leaks,
     press_frames,
     tiny_model,
     wait_until,
@@ -32,18 +32,6 @@ from beadsight.live_sources import PacedSource, frame_converter
 from beadsight.preprocess import FrameSizeError, Preprocessor
 from beadsight.readings import ReadingsFileError, open_readings
 from beadsight.viewer.server import ViewerServer
-
-
-@pytest.fixture(autouse=True)
-def no_thread_leaks():
-    """Every test must stop all the threads it started."""
-    before = set(threading.enumerate())
-    yield
-    wait_until(
-        lambda: not [t for t in threading.enumerate() if t not in before and t.is_alive()],
-        10,
-        "threads of the test to end",
-    )
 
 
 @pytest.fixture(scope="module")

@@ -7,29 +7,26 @@ import math
 import socket
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
-from live_helpers import BACKEND, TINY, WINDOW, ScriptedSource, press_frames, tiny_model, wait_until
+from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+    BACKEND,
+    TINY,
+    WINDOW,
+    ScriptedSource,
+    no_thread_leaks,
+    press_frames,
+    tiny_model,
+    wait_until,
+)
 
 from beadsight.errors import BeadSightError
 from beadsight.live import LiveSensor, LiveStatus
 from beadsight.stream import StreamServer, encode_reading
 
 CLIENT = Path(__file__).resolve().parents[1] / "examples" / "stream_client.py"
-
-
-@pytest.fixture(autouse=True)
-def no_thread_leaks():
-    before = set(threading.enumerate())
-    yield
-    wait_until(
-        lambda: not [t for t in threading.enumerate() if t not in before and t.is_alive()],
-        10,
-        "threads of the test to end",
-    )
 
 
 @pytest.fixture(scope="module")
