@@ -222,6 +222,50 @@ def test_train_bf16_at_reduced_image_size_with_host_loader(make_dataset, tmp_pat
     assert model.predict(small).shape == (32, 32)
 
 
+def test_cosine_schedule_runs_from_lr_to_lr_min():
+    config = TrainConfig(data="d.h5", out="r", lr=1e-3, lr_min=1e-5, lr_schedule="cosine")
+    assert config.learning_rate(0, 101) == pytest.approx(1e-3)
+    assert config.learning_rate(50, 101) == pytest.approx((1e-3 + 1e-5) / 2)
+    assert config.learning_rate(100, 101) == pytest.approx(1e-5)
+    rates = [config.learning_rate(s, 101) for s in range(101)]
+    assert (np.diff(rates) < 0).all()
+    assert TrainConfig(data="d.h5", out="r", lr=1e-3).learning_rate(100, 101) == 1e-3
+    with pytest.raises(ConfigError, match="lr_schedule"):
+        TrainConfig(data="d.h5", out="r", lr_schedule="step")
+    with pytest.raises(ConfigError, match="lr_min"):
+        TrainConfig(data="d.h5", out="r", lr=1e-4, lr_min=1e-3)
+
+
+def test_fine_tune_from_a_checkpoint_with_a_cosine_schedule(make_dataset, tmp_path, capsys):
+    data = make_dataset()
+    base, tuned = tmp_path / "base", tmp_path / "tuned"
+    assert cli("--data", data, "--out", base, "--steps", 2, "--batch-size", 16, *FAST) == 0
+    source = load_checkpoint(base / "best.pt")
+
+    # the width comes from the checkpoint (the default would be 16); a tiny learning
+    # rate leaves the starting weights visible in the result
+    args = ["--steps", 3, "--batch-size", 16, "--lr", 1e-12, "--lr-schedule", "cosine"]
+    assert (
+        cli("--data", data, "--out", tuned, "--init", base / "best.pt", *args, "--no-progress") == 0
+    )
+    model = load_checkpoint(tuned / "last.pt")
+    assert model.meta.model.width == 8
+    for name, value in model.module.net.state_dict().items():
+        torch.testing.assert_close(value, source.module.net.state_dict()[name], atol=1e-8, rtol=0)
+    assert model.meta.pixel_mean == source.meta.pixel_mean
+    assert model.meta.output_scale_kpa == source.meta.output_scale_kpa
+    assert model.meta.provenance["init"]["path"] == str((base / "best.pt").resolve())
+    lrs = [line["lr"] for line in _metrics(tuned) if line["event"] == "train"]
+    assert lrs[-1] == pytest.approx(0.0)  # the last step ran at lr_min
+
+    # a cosine run's length is part of its schedule: resuming it longer is refused
+    assert cli("--out", tuned, "--resume", "--steps", 6) == 1
+    assert "'steps'" in capsys.readouterr().err
+    # an architecture that does not fit the checkpoint names the field
+    with pytest.raises(ConfigError, match="width is 8 in the checkpoint but 16"):
+        train(TrainConfig(data=str(data), out=str(tmp_path / "w16"), init=str(base / "best.pt")))
+
+
 # --- bad inputs ---------------------------------------------------------------------
 def test_dataset_without_presses_is_refused(tmp_path):
     g = SensorGeometry(image_size_px=64)

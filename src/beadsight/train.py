@@ -19,6 +19,12 @@ The run folder (``config.out``)::
     last.pt        newest checkpoint with the full training state (resume from it)
     best.pt        lowest validation loss (model + metadata only)
 
+Learning rate: constant (the reference), or ``lr_schedule="cosine"``, decaying from
+``lr`` to ``lr_min`` over the run's total steps. ``init`` starts the weights from an
+existing checkpoint (fine-tuning, e.g. the shipped simulated-sensor model on a real
+sensor's data); the run then keeps that checkpoint's normalisation and output scale,
+which its weights were trained for.
+
 Checkpoints are written atomically every epoch, every ``checkpoint_every_steps``
 steps and every ``checkpoint_every_min`` minutes, so a killed run loses little;
 ``resume=True`` continues from ``last.pt`` with the same split, optimizer state,
@@ -29,6 +35,7 @@ data-parallel (DDP; NCCL on GPUs, gloo on CPUs): windows are sharded like
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -104,9 +111,14 @@ RESUME_FIXED_FIELDS = (
     "seed",
     "batch_size",
     "lr",
+    "lr_schedule",
+    "lr_min",
     "weight_decay",
     "noise_std",
 )
+LR_SCHEDULES = ("constant", "cosine")
+# Settings read from the ``init`` checkpoint when neither the TOML file nor a flag sets them.
+INIT_MODEL_FIELDS = ("window", "width", "up_kernel")
 
 
 @dataclass(frozen=True)
@@ -118,7 +130,10 @@ class TrainConfig(_Serializable):
     steps: int | None = None  # optimizer steps in total; None: train for ``epochs``
     epochs: int = 100  # passes over the training windows (used when steps is None)
     batch_size: int = 64  # windows per optimizer step, over all DDP processes together
-    lr: float = 1e-4  # AdamW learning rate (constant)
+    lr: float = 1e-4  # AdamW learning rate (the peak one under a schedule)
+    lr_schedule: str = "constant"  # constant | cosine (from lr down to lr_min over the run)
+    lr_min: float = 0.0  # the cosine schedule's final learning rate
+    init: str | None = None  # checkpoint whose weights start the run (fine-tuning)
     weight_decay: float = 1e-4  # AdamW decoupled weight decay
     dropout: float = 0.2  # conv-block dropout
     width: int = 16  # U-Net channels of the first block
@@ -156,13 +171,21 @@ class TrainConfig(_Serializable):
         for name in ("steps", "threads", "image_size"):
             if getattr(self, name) is not None:
                 _check_int(self, name, 1)
-        for name in ("lr", "weight_decay", "noise_std", "checkpoint_every_min"):
+        for name in ("lr", "lr_min", "weight_decay", "noise_std", "checkpoint_every_min"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
                 raise ConfigError(f"{name} must be a number >= 0, got {value!r}")
             object.__setattr__(self, name, float(value))
         if not self.lr > 0:
             raise ConfigError(f"lr must be > 0, got {self.lr}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ConfigError(
+                f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}"
+            )
+        if self.lr_min > self.lr:
+            raise ConfigError(f"lr_min ({self.lr_min}) must not exceed lr ({self.lr})")
+        if self.init is not None:
+            object.__setattr__(self, "init", str(self.init))
         if self.image_size is not None and self.image_size % SIZE_MULTIPLE:
             raise ConfigError(
                 f"image_size must be a multiple of {SIZE_MULTIPLE} (the U-Net halves it three "
@@ -194,6 +217,13 @@ class TrainConfig(_Serializable):
         return ModelConfig(
             window=self.window, width=self.width, up_kernel=self.up_kernel, dropout=self.dropout
         )
+
+    def learning_rate(self, step: int, total_steps: int) -> float:
+        """The learning rate of optimizer step ``step`` (0-based) of ``total_steps``."""
+        if self.lr_schedule == "constant" or total_steps <= 1:
+            return self.lr
+        progress = min(step, total_steps - 1) / (total_steps - 1)
+        return self.lr_min + 0.5 * (self.lr - self.lr_min) * (1.0 + math.cos(math.pi * progress))
 
 
 def _check_int(config: TrainConfig, name: str, minimum: int) -> None:
@@ -233,6 +263,11 @@ def resolve_train_config(
             raise ConfigError(f"{stored}: not valid JSON ({e})") from None
     values.update(file_values)
     values.update(given)
+    if values.get("init") and not values.get("resume"):
+        init_model = load_checkpoint(values["init"]).meta.model
+        for name in INIT_MODEL_FIELDS:
+            if name not in file_values and name not in given:
+                values[name] = getattr(init_model, name)
     for required in ("data", "out"):
         if values.get(required) is None:
             raise ConfigError(
@@ -518,6 +553,8 @@ class _Trainer:
             )
 
     def _new_model(self) -> PressureModel:
+        if self.config.init:
+            return self._init_model()
         config, data = self.config, self.data
         geometry = self.ds.geometry.with_image_size(data.image_size)
         train_labels = data.labels["train"]
@@ -558,6 +595,43 @@ class _Trainer:
         )
         return model
 
+    def _init_model(self) -> PressureModel:
+        """The ``init`` checkpoint's weights and normalisation, with this run's dropout."""
+        config, path = self.config, self.config.init
+        source = load_checkpoint(path)
+        wanted = config.model_config()
+        for name in INIT_MODEL_FIELDS:
+            have, want = getattr(source.meta.model, name), getattr(wanted, name)
+            if have != want:
+                raise ConfigError(
+                    f"init {path}: {name} is {have} in the checkpoint but {want} in this run; "
+                    f"leave --{name.replace('_', '-')} out to take the checkpoint's"
+                )
+        if source.image_size != self.data.image_size:
+            raise ConfigError(
+                f"init {path}: the checkpoint is {source.image_size} px but this run trains at "
+                f"{self.data.image_size} px; pass --image-size {source.image_size}"
+            )
+        meta = dataclasses.replace(
+            source.meta,
+            model=wanted,
+            provenance={
+                **source.meta.provenance,
+                "source": "beadsight train",
+                "beadsight_version": __version__,
+                "dataset": str(Path(config.data).resolve()),
+                "dataset_source": self.ds.provenance.get("source"),
+                "fps": float(self.ds.fps),
+                "created_unix": time.time(),
+                "init": {"path": str(Path(path).resolve()), "provenance": source.meta.provenance},
+            },
+            training={},
+        )
+        model = PressureModel.create(meta)
+        model.module.net.load_state_dict(source.module.net.state_dict())
+        self._info("initialised from %s (keeping its normalisation and output scale)", path)
+        return model
+
     def _load_resume(self, image_size: int, fingerprint: str) -> tuple[PressureModel, dict]:
         path = self.run.last
         state = read_checkpoint_file(path)
@@ -572,8 +646,11 @@ class _Trainer:
         stored = dict(training.get("config", {}))
         stored["image_size"] = model.image_size
         current = {**self.config.to_dict(), "image_size": image_size}
-        for name in RESUME_FIXED_FIELDS:
-            a, b = stored.get(name), current[name]
+        fixed = RESUME_FIXED_FIELDS
+        if current["lr_schedule"] != "constant":  # the schedule spans the run's length
+            fixed = (*fixed, "steps", "epochs")
+        for name in fixed:
+            a, b = stored.get(name, TrainConfig.__dataclass_fields__[name].default), current[name]
             if (list(a) if isinstance(a, (list, tuple)) else a) != (
                 list(b) if isinstance(b, (list, tuple)) else b
             ):
@@ -909,6 +986,8 @@ class _Trainer:
                 self.train_loader.set_epoch(epoch, skip)
                 start = self.step
                 for frames, targets in self.train_loader:
+                    for group in self.optimizer.param_groups:
+                        group["lr"] = config.learning_rate(self.step, total)
                     self._interval["loss_sum"] += self.train_step(frames, targets)
                     self._interval["steps"] += 1
                     self.step += 1

@@ -46,6 +46,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     _flag(p, "epochs", "passes over the training windows", type=int)
     _flag(p, "batch-size", "windows per step over all processes", type=int)
     _flag(p, "lr", "AdamW learning rate", type=float)
+    _flag(
+        p,
+        "lr-schedule",
+        "constant, or cosine: decay from --lr to --lr-min over the run's steps",
+        choices=("constant", "cosine"),
+    )
+    _flag(p, "lr-min", "final learning rate of the cosine schedule", type=float)
+    _flag(
+        p,
+        "init",
+        "start from this checkpoint's weights and normalisation (fine-tuning); window, "
+        "width and up-kernel default to the checkpoint's",
+        metavar="CHECKPOINT",
+    )
     _flag(p, "weight-decay", "AdamW weight decay", type=float)
     _flag(p, "dropout", "dropout in the U-Net conv blocks", type=float)
     _flag(p, "width", "U-Net width (channels of the first block)", type=int)
