@@ -576,14 +576,7 @@ class _Trainer:
             pixel_std=std,
             channel_order="RGB",
             output_scale_kpa=scale,
-            provenance={
-                "source": "beadsight train",
-                "beadsight_version": __version__,
-                "dataset": str(Path(config.data).resolve()),
-                "dataset_source": self.ds.provenance.get("source"),
-                "fps": float(self.ds.fps),  # camera rate: the predictor's gap detection uses it
-                "created_unix": time.time(),
-            },
+            provenance=self._provenance(),
         )
         torch.manual_seed(config.seed)  # identical initial weights on every rank
         model = PressureModel.create(meta)
@@ -594,6 +587,16 @@ class _Trainer:
             scale,
         )
         return model
+
+    def _provenance(self) -> dict[str, Any]:
+        return {
+            "source": "beadsight train",
+            "beadsight_version": __version__,
+            "dataset": str(Path(self.config.data).resolve()),
+            "dataset_source": self.ds.provenance.get("source"),
+            "fps": float(self.ds.fps),  # camera rate: the predictor's gap detection uses it
+            "created_unix": time.time(),
+        }
 
     def _init_model(self) -> PressureModel:
         """The ``init`` checkpoint's weights and normalisation, with this run's dropout."""
@@ -615,14 +618,9 @@ class _Trainer:
         meta = dataclasses.replace(
             source.meta,
             model=wanted,
+            geometry=self.ds.geometry.with_image_size(self.data.image_size),
             provenance={
-                **source.meta.provenance,
-                "source": "beadsight train",
-                "beadsight_version": __version__,
-                "dataset": str(Path(config.data).resolve()),
-                "dataset_source": self.ds.provenance.get("source"),
-                "fps": float(self.ds.fps),
-                "created_unix": time.time(),
+                **self._provenance(),
                 "init": {"path": str(Path(path).resolve()), "provenance": source.meta.provenance},
             },
             training={},
