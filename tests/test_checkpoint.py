@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from beadsight import load_checkpoint
-from beadsight.checkpoint import CheckpointError, UnsafeCheckpointError
+from beadsight.checkpoint import CheckpointError, UnsafeCheckpointError, checkpoint_summary
 from beadsight.config import ModelConfig
 from beadsight.model import UNet
 
@@ -74,6 +74,9 @@ def test_reference_size_model_loads(tmp_path):
     model = load_checkpoint(tmp_path / "ref.pt")
     assert model.window == 15 and model.image_size == 256
     assert len(model.module.net.state_dict()) == 42
+    summary = checkpoint_summary(tmp_path / "ref.pt")
+    assert (summary["format"], summary["parameters"], summary["epoch"]) == ("reference", 504_449, 7)
+    assert summary["channel_order"] == "BGR" and summary["dataset"] == "/data/hour1.hdf5"
 
 
 def test_own_checkpoint_round_trip(tmp_path, tiny_model):

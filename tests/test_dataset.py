@@ -132,3 +132,6 @@ def test_info_and_import_cli(tmp_path, capsys):
     assert summary["presses"] == 2 and summary["frames"] == 90 and summary["format"] == "beadsight"
     assert main(["info", str(tmp_path / "missing.h5")]) == 1
     assert "missing.h5: dataset file not found" in capsys.readouterr().err
+    (tmp_path / "notes.txt").write_text("not data")
+    assert main(["info", str(tmp_path / "notes.txt")]) == 1
+    assert "notes.txt: neither a dataset (an HDF5 file) nor a checkpoint" in capsys.readouterr().err

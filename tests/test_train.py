@@ -257,10 +257,25 @@ def test_fine_tune_from_a_checkpoint_with_a_cosine_schedule(make_dataset, tmp_pa
     assert model.meta.provenance["init"]["path"] == str((base / "best.pt").resolve())
     lrs = [line["lr"] for line in _metrics(tuned) if line["event"] == "train"]
     assert lrs[-1] == pytest.approx(0.0)  # the last step ran at lr_min
+    capsys.readouterr()
+    assert main(["info", str(tuned / "last.pt"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["initialised_from"] == str((base / "best.pt").resolve())
+    assert (summary["format"], summary["width"], summary["step"]) == ("beadsight", 8, 3)
+    assert summary["parameters"] == sum(p.numel() for p in model.module.parameters())
 
     # a cosine run's length is part of its schedule: resuming it longer is refused
     assert cli("--out", tuned, "--resume", "--steps", 6) == 1
     assert "'steps'" in capsys.readouterr().err
+    # a fully convolutional model carries over to another resolution
+    small = tmp_path / "small"
+    args = ["--steps", 1, "--batch-size", 8, "--lr", 1e-12, "--image-size", 32, "--no-progress"]
+    assert cli("--data", data, "--out", small, "--init", base / "best.pt", *args) == 0
+    model = load_checkpoint(small / "last.pt")
+    assert model.image_size == 32 and model.geometry.image_size_px == 32
+    for name, value in model.module.net.state_dict().items():
+        torch.testing.assert_close(value, source.module.net.state_dict()[name], atol=1e-8, rtol=0)
+
     # an architecture that does not fit the checkpoint names the field
     with pytest.raises(ConfigError, match="width is 8 in the checkpoint but 16"):
         train(TrainConfig(data=str(data), out=str(tmp_path / "w16"), init=str(base / "best.pt")))

@@ -350,3 +350,25 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except (RuntimeError, TypeError, AttributeError) as e:
         raise CheckpointError(f"{path}: weights do not fit the described model: {e}") from None
     return PressureModel(module, meta, source=str(path)).to(map_location)
+
+
+def checkpoint_summary(path: str | Path) -> dict[str, Any]:
+    """What a checkpoint is and how it was made: architecture, input, output, training."""
+    model = load_checkpoint(path)
+    meta, training = model.meta, model.meta.training
+    init = meta.provenance.get("init")
+    return {
+        "path": str(path),
+        "format": "reference" if meta.provenance.get("source") == "reference" else "beadsight",
+        "parameters": sum(p.numel() for p in model.module.parameters()),
+        **meta.model.to_dict(),
+        "image_size_px": model.image_size,
+        "channel_order": meta.channel_order,
+        "output_scale_kpa": meta.output_scale_kpa,
+        "dataset": meta.provenance.get("dataset") or meta.provenance.get("dataset_path"),
+        "initialised_from": init.get("path") if isinstance(init, dict) else None,
+        "step": training.get("step"),
+        "epoch": training.get("epoch", meta.provenance.get("epoch")),
+        "best_val": training.get("best_val"),
+        "geometry": meta.geometry.to_dict(),
+    }

@@ -610,11 +610,6 @@ class _Trainer:
                     f"init {path}: {name} is {have} in the checkpoint but {want} in this run; "
                     f"leave --{name.replace('_', '-')} out to take the checkpoint's"
                 )
-        if source.image_size != self.data.image_size:
-            raise ConfigError(
-                f"init {path}: the checkpoint is {source.image_size} px but this run trains at "
-                f"{self.data.image_size} px; pass --image-size {source.image_size}"
-            )
         meta = dataclasses.replace(
             source.meta,
             model=wanted,
@@ -628,6 +623,14 @@ class _Trainer:
         model = PressureModel.create(meta)
         model.module.net.load_state_dict(source.module.net.state_dict())
         self._info("initialised from %s (keeping its normalisation and output scale)", path)
+        if source.image_size != self.data.image_size:
+            # the U-Net is fully convolutional and pressure is per area: the weights carry
+            # over to another resolution and go on learning there
+            self._info(
+                "the checkpoint was trained at %d px; this run trains it at %d px",
+                source.image_size,
+                self.data.image_size,
+            )
         return model
 
     def _load_resume(self, image_size: int, fingerprint: str) -> tuple[PressureModel, dict]:

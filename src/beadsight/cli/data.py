@@ -1,16 +1,22 @@
-"""Dataset commands: ``beadsight info`` and ``beadsight import-reference``."""
+"""Dataset commands: ``beadsight info`` (datasets and checkpoints) and
+``beadsight import-reference``."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import zipfile
+from pathlib import Path
 
+import h5py
+
+from beadsight.checkpoint import checkpoint_summary
 from beadsight.data.dataset import import_reference, open_dataset
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("info", help="summarise a dataset (ours or a reference HDF5 file)")
-    p.add_argument("dataset", help="dataset .h5 file")
+    p = sub.add_parser("info", help="summarise a dataset or a checkpoint (ours or the reference's)")
+    p.add_argument("file", help="dataset .h5 file or checkpoint .pt file")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_info)
 
@@ -45,7 +51,15 @@ def dataset_summary(path: str) -> dict:
 
 
 def _info(args: argparse.Namespace) -> int:
-    summary = dataset_summary(args.dataset)
+    path = Path(args.file)
+    if path.is_file() and not h5py.is_hdf5(path):
+        if not zipfile.is_zipfile(path):
+            raise ValueError(
+                f"{path}: neither a dataset (an HDF5 file) nor a checkpoint (a torch zip archive)"
+            )
+        summary = checkpoint_summary(path)
+    else:
+        summary = dataset_summary(args.file)
     if args.json:
         print(json.dumps(summary))
         return 0
