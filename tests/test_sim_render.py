@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -9,6 +11,8 @@ import pytest
 from beadsight.geometry import mm_to_px
 from beadsight.sim import PouchSimulator, SimConfig
 from beadsight.sim.fisheye import raw_to_sensor_maps
+from beadsight.sim.pouch import PouchView
+from beadsight.sim.render import SensorRenderer
 
 DT = 1 / 30
 CLEAN = dict(noise_std=0.0, raw_noise_std=0.0, flicker=0.0, raw_jpeg_quality=None)
@@ -86,6 +90,28 @@ def test_the_finger_itself_is_never_visible():
             clear &= np.hypot(rows - r, cols - c) > reach
     assert clear.sum() > 3000
     assert np.array_equal(rest[clear], load[clear])
+
+
+def test_flattening_shows_depth_without_steps():
+    # Sprites exist for a few flatness levels; each bead's own threshold between them
+    # makes the beads together follow the flatness (the depth) in fine steps.
+    cfg = SimConfig(image_size_px=64, **CLEAN)
+    k = cfg.n_beads + cfg.n_bubbles
+    side = math.ceil(math.sqrt(k))
+    grid = np.linspace(-17.0, 17.0, side)
+    xy = np.stack(np.meshgrid(grid, grid), axis=-1).reshape(-1, 2)[:k]
+    renderer = SensorRenderer(cfg, 64, 0, np.random.default_rng(0))
+    frames = set()
+    for flatness in np.linspace(0.3, 0.6, 31):  # 1.8 to 3.6 of the 7 sprite levels
+        view = PouchView(
+            xy_mm=xy,
+            radius_mm=np.full(k, 2.0),
+            flatness=np.full(k, flatness),
+            tint=np.zeros(k, np.int64),
+            index=np.arange(k),
+        )
+        frames.add(renderer.render(view).tobytes())
+    assert len(frames) >= 28  # rounding to the nearest level would give 3
 
 
 def test_jpeg_option_compresses_frames():

@@ -52,13 +52,15 @@ class PouchView:
     xy_mm: (K, 2) float64 centres, mm from the sensor centre (printer frame);
     radius_mm: (K,) apparent radius (compressed beads look larger);
     flatness: (K,) 0..1 (1 = compressed by ``max_compression``);
-    tint: (K,) int index into ``config.bead_tints_rgb``, or -1 for an air bubble.
+    tint: (K,) int index into ``config.bead_tints_rgb``, or -1 for an air bubble;
+    index: (K,) int which bead or bubble each entry is (the same object keeps its index).
     """
 
     xy_mm: np.ndarray
     radius_mm: np.ndarray
     flatness: np.ndarray
     tint: np.ndarray
+    index: np.ndarray
 
 
 def relax_overlaps(
@@ -316,6 +318,7 @@ class BeadPouch:
             radius_mm=radius[order],
             flatness=(strain / self.config.max_compression)[order],
             tint=self.tint[order],
+            index=order,
         )
 
     @property

@@ -11,7 +11,11 @@ A frame is composed as:
    and four specular highlights (one per corner LED) whose arrangement depends on
    where the bead sits; a compressed bead is larger and shows a flat contact
    patch with dimmed highlights. Sprites are cached by quantised radius,
-   flatness, image zone and sub-pixel phase, so a frame is ~100 small blits;
+   flatness, image zone and sub-pixel phase, so a frame is ~100 small blits.
+   Radius and flatness are quantised with a fixed random threshold per bead
+   (ordered dithering): each bead steps to its next sprite at its own depth, so
+   the beads under a finger together still show the depth continuously rather
+   than in a few coarse steps;
 3. the LEDs' illumination and the lens's vignetting (one static gain map), a
    per-frame brightness flicker, static glare of the LEDs on the acrylic;
 4. rounding to uint8, sensor noise (pre-generated noise tiles at random offsets,
@@ -98,7 +102,10 @@ class SensorRenderer:
         self.noise = noise
         self.jpeg_quality = jpeg_quality
         self.px_per_mm = self.size / config.sensor_size_mm
-        self._background = self._make_background(np.random.default_rng(appearance_seed))
+        look = np.random.default_rng(appearance_seed)
+        self._background = self._make_background(look)
+        # each object's quantisation threshold, part of the pouch's static look
+        self._dither = look.random(config.n_beads + config.n_bubbles)
         self._illumination = self._make_illumination()
         self._glare = self._make_glare()
         self._scratch = np.empty((self.size, self.size, 3), np.float32)
@@ -176,8 +183,11 @@ class SensorRenderer:
         row = (0.5 - view.xy_mm[:, 1] / smm) * s  # continuous pixel coordinates
         col = (0.5 - view.xy_mm[:, 0] / smm) * s
         r_px = np.maximum(view.radius_mm * ppm, 0.5)
-        rq = np.clip(np.rint(np.log(r_px) / _LOG_STEP), 0, self._max_rq).astype(np.int64)
-        fq = np.clip(np.rint(view.flatness * (FLAT_LEVELS - 1)), 0, FLAT_LEVELS - 1)
+        dither = self._dither[view.index]  # floor(x + u), u uniform: unbiased in x
+        rq = np.floor(np.log(r_px) / _LOG_STEP + dither)
+        rq = np.clip(rq, 0, self._max_rq).astype(np.int64)
+        fq = np.floor(view.flatness * (FLAT_LEVELS - 1) + (dither + 0.5) % 1.0)
+        fq = np.clip(fq, 0, FLAT_LEVELS - 1)
         zr = np.clip((row / s * ZONES).astype(np.int64), 0, ZONES - 1)
         zc = np.clip((col / s * ZONES).astype(np.int64), 0, ZONES - 1)
         ar, ac = np.floor(row), np.floor(col)
