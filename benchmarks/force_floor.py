@@ -23,7 +23,7 @@ import argparse
 import numpy as np
 
 from beadsight.sim import SimConfig, SimulatedSession
-from beadsight.sim.dataset import _ForceLog
+from beadsight.sim.dataset import ScaleLog
 
 
 def delayed(x: np.ndarray, frames: int) -> np.ndarray:
@@ -37,7 +37,7 @@ def main() -> None:
     args = parser.parse_args()
 
     cfg = SimConfig()
-    log, t, true_f, depth, radius = _ForceLog(), [], [], [], []
+    log, t, true_f, depth, radius = ScaleLog(), [], [], [], []
     for frame in SimulatedSession(cfg, args.seed, args.presses, render=False):
         log.add(frame.scale_readings)
         t.append(frame.timestamp_s)

@@ -63,8 +63,8 @@ def sim_config_for(
     return dataclasses.replace(config, **changes) if changes else config
 
 
-class _ForceLog:
-    """The scale's readings so far, and interpolation of them to frame times."""
+class ScaleLog:
+    """The scale's readings so far, and interpolation of them to frame times (as datasets label)."""
 
     def __init__(self) -> None:
         self.t: list[float] = []
@@ -154,7 +154,7 @@ def _record(
 ) -> None:
     from tqdm import tqdm
 
-    log = _ForceLog()
+    log = ScaleLog()
     pending: list[SimFrame] = []
     with tqdm(total=total, unit="frame", desc="simulate", disable=not progress) as bar:
         for frame in session:
@@ -170,7 +170,7 @@ def _record(
             _flush(writer, pending, log)
 
 
-def _flush(writer: DatasetWriter, frames: list[SimFrame], log: _ForceLog) -> None:
+def _flush(writer: DatasetWriter, frames: list[SimFrame], log: ScaleLog) -> None:
     t = np.array([f.timestamp_s for f in frames])
     force, valid = log.at(t)
     writer.append(
