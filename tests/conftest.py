@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,17 @@ from beadsight.data.dataset import DatasetWriter
 from beadsight.geometry import mm_to_px
 
 TINY = SensorGeometry(image_size_px=64)
+
+
+def pytest_configure(config):
+    """Let the Ctrl-C tests' children see SIGINT even when pytest runs as a background job.
+
+    A non-interactive shell starts background jobs (``nohup .ci/run &``) with SIGINT ignored,
+    and an ignored signal is inherited by every child, so ``beadsight collect`` or
+    ``beadsight live`` would never receive the test's Ctrl-C and run to the end.
+    """
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def synthetic_press_frames(force_n, position_mm, geometry, rng):
