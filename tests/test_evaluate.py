@@ -59,11 +59,13 @@ def test_cli_evaluate_end_to_end(make_dataset, model_file, tmp_path, capsys):
         [
             "evaluate", "--checkpoint", str(model_file), "--data", str(data), "--split", "all",
             "--out", str(out), "--batch-size", "16", "--device", "cpu", "--max-frames", "60",
-            "--baselines",
+            "--baselines", "--no-progress",
         ]
     )  # fmt: skip
     assert code == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert "frame/s" not in captured.err  # --no-progress: no bar in a script's log
+    printed = captured.out
     assert "this run" in printed and "paper" in printed and "baseline: zero" in printed
     assert "0.790" in printed and "11.9" in printed and "1.18" in printed
 

@@ -45,6 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="resize frames to the checkpoint's image size if it differs from the dataset's "
         "(for checkpoints trained with --image-size)",
     )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_evaluate)
 
     p = subparsers.add_parser(
@@ -64,6 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--batch-size", type=int, default=PREDICT_BATCH_SIZE)
     p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, mps, ...")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_predict)
 
 
@@ -82,6 +84,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         baselines=args.baselines,
         plots=not args.no_plots,
         resize=args.resize,
+        progress=not args.no_progress,
     )
     presses = metrics["presses"]
     print(
@@ -104,6 +107,7 @@ def run_predict(args: argparse.Namespace) -> int:
         preprocess=args.preprocess,
         batch_size=args.batch_size,
         device=args.device,
+        progress=not args.no_progress,
     )
     print(summarize_predictions(out))
     return 0
