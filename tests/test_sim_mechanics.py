@@ -279,6 +279,17 @@ def test_session_frames_and_presses():
     assert all(f.true_force_n == 0 for f in frames if f.finger_depth_mm <= 0)
 
 
+@pytest.mark.timeout(60)
+def test_session_takes_a_scale_sample_due_less_than_a_step_away():
+    """Seed 700's 60th press has a scale sample due < 1 us after the physics clock, a gap too
+    short to step; the session used to wait for that sample forever."""
+    session = SimulatedSession(SimConfig(), seed=700, presses=60, render=False)
+    frames = list(session)
+    assert len(frames) == session.num_frames()
+    readings = np.array([t for f in frames for t, _ in f.scale_readings])
+    assert np.all(np.diff(readings) > 0)
+
+
 def test_endless_session_starts_with_the_finite_sessions_presses():
     cfg = SimConfig(image_size_px=32)
     finite = SimulatedSession(cfg, seed=2, presses=2, render=False)

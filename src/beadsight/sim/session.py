@@ -166,7 +166,9 @@ class SimulatedSession:
             if t_next - t_now > _MIN_STEP_S:
                 xy, z, _ = cycle.state_at(t_next)
                 self.simulator.step(t_next - t_now, xy, self.config.surface_z_mm - z)
-                t_now = t_next
+            # A gap too short to step is still crossed: a sample due in it must be taken,
+            # or the scale would never be ready and this loop would never end.
+            t_now = t_next
             grams = self.scale.sample(start + t_now, self.simulator.force_n)
             if grams is not None:
                 readings.append((start + t_now, grams))
