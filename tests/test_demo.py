@@ -6,8 +6,9 @@ import json
 
 import pytest
 
+from beadsight.checkpoint import load_checkpoint
 from beadsight.cli import main
-from beadsight.demo import DemoError, shipped_model_path
+from beadsight.demo import TRAIN_DEMO_SEED, DemoError, shipped_model_path, training_simulation
 
 REPORT_FILES = (
     "index.html",
@@ -141,3 +142,7 @@ def test_demo_train_from_scratch(tmp_path, capsys):
     assert estimate["measured_steps"] == 3 and estimate["planned_steps"] > 10_000
     assert estimate["reference_size_hours"] > 0
     assert (out / "run" / "best.pt").is_file() and (out / "animation.gif").is_file()
+    # The training data is deleted, but the checkpoint still names its simulation.
+    assert not (out / "train.h5").exists()
+    seeds, trained_on = training_simulation(load_checkpoint(out / "run" / "best.pt"))
+    assert seeds == {TRAIN_DEMO_SEED} and trained_on["image_size_px"] == 32

@@ -136,8 +136,8 @@ def _model_record() -> str | None:
 def training_simulation(model: PressureModel) -> tuple[set[int], dict | None]:
     """Seeds and SimConfig dict of the simulated data a model was trained on, where known.
 
-    Looks at the checkpoint's provenance (``sim: {seed, config}``, as the shipped model
-    records it) and at the training dataset's provenance if that file is here.
+    Looks at the checkpoint's provenance (``sim: {seed, config}``, which ``beadsight train``
+    records for simulated data) and at the training dataset's provenance if that file is here.
     """
     seeds: set[int] = set()
     config = None

@@ -589,7 +589,7 @@ class _Trainer:
         return model
 
     def _provenance(self) -> dict[str, Any]:
-        return {
+        provenance = {
             "source": "beadsight train",
             "beadsight_version": __version__,
             "dataset": str(Path(self.config.data).resolve()),
@@ -597,6 +597,10 @@ class _Trainer:
             "fps": float(self.ds.fps),  # camera rate: the predictor's gap detection uses it
             "created_unix": time.time(),
         }
+        sim = self.ds.provenance.get("simulator")
+        if isinstance(sim, dict):  # simulated data: the demo keeps its held-out presses apart
+            provenance["sim"] = {"seed": sim.get("seed"), "config": sim.get("config")}
+        return provenance
 
     def _init_model(self) -> PressureModel:
         """The ``init`` checkpoint's weights and normalisation, with this run's dropout."""
