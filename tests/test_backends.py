@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 
@@ -119,14 +120,40 @@ def _incremental_matches_run(backend: Backend, model: PressureModel, frames: np.
         np.testing.assert_allclose(got[0], model.predict(window[0]), atol=1e-4, rtol=0)
 
 
-def test_torch_incremental_normalisation_matches_stateless(probe_model):
+@pytest.fixture(scope="module")
+def strided_model(probe_model) -> PressureModel:
+    """probe_model's weights, seeing every 3rd frame of a 43-frame window."""
+    meta = dataclasses.replace(
+        probe_model.meta, model=dataclasses.replace(probe_model.meta.model, frame_stride=3)
+    )
+    model = PressureModel.create(meta)
+    model.module.load_state_dict(probe_model.module.state_dict())
+    return model
+
+
+def test_strided_model_sees_every_stride_th_frame(probe_model, strided_model):
+    frames = _stream(strided_model.window)
+    assert strided_model.window == 3 * (T - 1) + 1
+    np.testing.assert_allclose(
+        strided_model.predict(frames), probe_model.predict(frames[::3]), atol=1e-6, rtol=0
+    )
+    changed = frames.copy()
+    changed[1] = 255 - changed[1]  # a frame between two the network sees
+    np.testing.assert_array_equal(strided_model.predict(changed), strided_model.predict(frames))
+
+
+def test_torch_incremental_normalisation_matches_stateless(probe_model, strided_model):
     _incremental_matches_run(TorchBackend(probe_model), probe_model, _stream(T + 32))
+    w = strided_model.window
+    _incremental_matches_run(TorchBackend(strided_model), strided_model, _stream(w + 32))
 
 
-def test_device_ring_logic_on_cpu(probe_model):
+def test_device_ring_logic_on_cpu(probe_model, strided_model):
     """The CUDA backend's device ring, run eagerly on the CPU."""
     backend = CudaGraphBackend(probe_model, "fp32", device="cpu", use_graphs=False)
     _incremental_matches_run(backend, probe_model, _stream(T + 32))
+    strided = CudaGraphBackend(strided_model, "fp32", device="cpu", use_graphs=False)
+    _incremental_matches_run(strided, strided_model, _stream(strided_model.window + 32))
     np.testing.assert_allclose(
         backend.run(probe_window(probe_model))[0],
         probe_model.predict(probe_window(probe_model)[0]), atol=1e-5,

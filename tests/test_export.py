@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import subprocess
@@ -50,12 +51,18 @@ def test_onnx_export_parity_and_metadata(tiny_model, tmp_path):
     assert inp.type.tensor_type.elem_type == onnx.TensorProto.UINT8
 
 
-def test_exported_onnx_runs_without_beadsight(tiny_model, tmp_path):
+@pytest.mark.parametrize("frame_stride", [1, 3])
+def test_exported_onnx_runs_without_beadsight(tiny_model, tmp_path, frame_stride):
     """The docstring's snippet, run by a plain interpreter that never imports beadsight."""
-    path = export_model(tiny_model, "onnx", tmp_path / "beadsight.onnx").path
-    window = probe_window(tiny_model)[0]
+    model = tiny_model
+    if frame_stride > 1:
+        config = dataclasses.replace(tiny_model.meta.model, frame_stride=frame_stride)
+        model = PressureModel.create(dataclasses.replace(tiny_model.meta, model=config))
+        model.module.load_state_dict(tiny_model.module.state_dict())
+    path = export_model(model, "onnx", tmp_path / "beadsight.onnx").path
+    window = probe_window(model)[0]
     np.save(tmp_path / "window.npy", window)
-    np.save(tmp_path / "expected.npy", tiny_model.predict(window))
+    np.save(tmp_path / "expected.npy", model.predict(window))
     snippet = re.search(r"without beadsight.*?::\n\n(.*?)\n\n", export_module.__doc__, re.S)
     code = textwrap.dedent(snippet.group(1)).replace('"beadsight.onnx"', repr(str(path)))
     code = code.replace(
@@ -66,6 +73,7 @@ def test_exported_onnx_runs_without_beadsight(tiny_model, tmp_path):
         import sys
         assert "beadsight" not in sys.modules, "beadsight was imported"
         expected = np.load({str(tmp_path / "expected.npy")!r})
+        assert frames.shape[1] == t == {model.window}, (frames.shape, t)
         assert pressure_kpa.shape == expected.shape == (s, s), pressure_kpa.shape
         print(float(np.abs(pressure_kpa - expected).max()))
     """)

@@ -307,3 +307,16 @@ def test_predictor_with_other_window(tiny_model):
     readings = [predictor.update(f, k / FPS) for k, f in enumerate(frames)]
     assert [r is None for r in readings] == [True, True, True, False, False, False]
     np.testing.assert_allclose(readings[-1].pressure_kpa, model.predict(frames[2:]), atol=1e-5)
+
+
+def test_predictor_with_frame_stride(tiny_model):
+    meta = dataclasses.replace(
+        tiny_model.meta, model=ModelConfig(window=4, frame_stride=2, width=8)
+    )
+    model = PressureModel.create(meta)
+    predictor = _predictor(model)
+    frames = _frames(9)
+    readings = [predictor.update(f, k / FPS) for k, f in enumerate(frames)]
+    assert [r is None for r in readings] == [True] * 6 + [False] * 3  # span 7
+    np.testing.assert_array_equal(predictor.window_frames(), frames[2:])
+    np.testing.assert_allclose(readings[-1].pressure_kpa, model.predict(frames[2:]), atol=1e-5)

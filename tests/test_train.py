@@ -83,6 +83,7 @@ def test_config_precedence_defaults_toml_flags(tmp_path):
         ("split", (0.5, 0.5, 0.5), "split"),
         ("width", 0, "width"),
         ("up_kernel", 2, "up_kernel"),
+        ("frame_stride", 0, "frame_stride"),
         ("device", "tpu", "device"),
         ("loader", "disk", "loader"),
         ("batch_size", 0, "batch_size"),
@@ -275,6 +276,18 @@ def test_fine_tune_from_a_checkpoint_with_a_cosine_schedule(make_dataset, tmp_pa
     assert model.image_size == 32 and model.geometry.image_size_px == 32
     for name, value in model.module.net.state_dict().items():
         torch.testing.assert_close(value, source.module.net.state_dict()[name], atol=1e-8, rtol=0)
+
+    # the frame stride is not in the weights' shapes: a run may change it, and its
+    # windows then span (15 - 1) * 2 + 1 frames
+    strided = tmp_path / "strided"
+    args = ["--steps", 1, "--batch-size", 8, "--frame-stride", 2, "--no-progress"]
+    assert cli("--data", data, "--out", strided, "--init", base / "best.pt", *args) == 0
+    model = load_checkpoint(strided / "last.pt")
+    assert (model.meta.model.frame_stride, model.window) == (2, 29)
+    split = json.loads((strided / "split.json").read_text())
+    base_split = json.loads((base / "split.json").read_text())
+    assert split["frame_stride"] == 2
+    assert split["windows"]["train"] < base_split["windows"]["train"]  # 14 more frames each
 
     # an architecture that does not fit the checkpoint names the field
     with pytest.raises(ConfigError, match="width is 8 in the checkpoint but 16"):

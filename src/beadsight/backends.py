@@ -355,6 +355,9 @@ class TorchBackend(Backend):
         start = 3 * (self._head + 1)
         x = self._ring[:, start : start + 3 * t]  # (1, 3T, S, S), oldest first
         m = self.module
+        stride = m.net.config.frame_stride
+        if stride > 1:  # the frames the network sees: every stride-th, the newest included
+            x = x.unflatten(1, (t, 3))[:, ::stride].flatten(1, 2)
         with self._autocast():
             return self._output(m.net(x)[:, 0] * m.output_scale_kpa)
 

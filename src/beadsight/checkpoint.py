@@ -117,7 +117,8 @@ class PressureModel:
 
     @property
     def window(self) -> int:
-        return self.meta.model.window
+        """Frames in one input window (the model config's span)."""
+        return self.meta.model.span
 
     @property
     def image_size(self) -> int:

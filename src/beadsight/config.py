@@ -105,6 +105,7 @@ class ModelConfig(_Serializable):
     """The reference U-Net's hyper-parameters."""
 
     window: int = 15  # frames stacked on the channel axis, oldest first
+    frame_stride: int = 1  # the stacked frames are this many frames apart (1: consecutive)
     width: int = 16  # channels of the first encoder block; doubled at each level
     up_kernel: int = 1  # 1 = reference weights, 3 = the paper's text
     dropout: float = 0.2  # in every conv block but the last decoder block
@@ -112,12 +113,20 @@ class ModelConfig(_Serializable):
     def __post_init__(self) -> None:
         if self.window < 1:
             raise ConfigError(f"window must be >= 1, got {self.window}")
+        if self.frame_stride < 1:
+            raise ConfigError(f"frame_stride must be >= 1, got {self.frame_stride}")
         if self.width < 1:
             raise ConfigError(f"width must be >= 1, got {self.width}")
         if self.up_kernel not in (1, 3):
             raise ConfigError(f"up_kernel must be 1 or 3, got {self.up_kernel}")
         if not 0 <= self.dropout < 1:
             raise ConfigError(f"dropout must be in [0, 1), got {self.dropout}")
+
+    @property
+    def span(self) -> int:
+        """Frames in one input window: the newest, and ``window - 1`` more every
+        ``frame_stride`` frames back (``window`` when the stride is 1)."""
+        return (self.window - 1) * self.frame_stride + 1
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:

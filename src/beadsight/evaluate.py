@@ -268,7 +268,7 @@ def evaluation_frames(
         ids = selection.press_ids
         lengths = [int((ds.valid & (ds.press_id == p)).sum()) for p in ids]
         raise EvaluationError(
-            f"window mismatch: the checkpoint {model.source} needs window={model.window} "
+            f"window mismatch: the checkpoint {model.source} needs {model.window} "
             f"consecutive valid frames of one press, but the longest press cycle of the "
             f"{selection.name!r} split of {ds.path} has {max(lengths)} valid frames"
         )

@@ -19,8 +19,9 @@ Using an exported ONNX file without beadsight (only numpy and onnxruntime)::
     import json, numpy as np, onnxruntime as ort
     session = ort.InferenceSession("beadsight.onnx")
     meta = json.loads(session.get_modelmeta().custom_metadata_map["beadsight"])
-    t, s = meta["model"]["window"], meta["geometry"]["image_size_px"]
-    frames = np.zeros((1, t, s, s, 3), np.uint8)  # the last T RGB frames, oldest first
+    m, s = meta["model"], meta["geometry"]["image_size_px"]
+    t = (m["window"] - 1) * m.get("frame_stride", 1) + 1  # frames per input window
+    frames = np.zeros((1, t, s, s, 3), np.uint8)  # the last t RGB frames, oldest first
     pressure_kpa = session.run(None, {"frames": frames})[0][0]  # (S, S) float32 kPa
 
 Every export runs a parity check against the torch model on the probe windows

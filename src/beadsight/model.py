@@ -112,7 +112,9 @@ def infer_model_config(state_dict: dict[str, torch.Tensor], dropout: float = 0.2
 class FramesToPressure(nn.Module):
     """uint8 RGB frame windows -> kPa maps, with normalisation inside the module.
 
-    frames: (B, T, H, W, 3) uint8 RGB, oldest frame first.
+    frames: (B, T, H, W, 3) uint8 RGB, oldest frame first, T = ``window`` (the
+    config's span: with ``frame_stride`` s > 1 the network sees every s-th frame,
+    newest included).
     returns: (B, H, W) float32 kPa.
 
     ``channel_order`` is the order the network was trained on ("RGB" or "BGR");
@@ -141,10 +143,15 @@ class FramesToPressure(nn.Module):
 
     @property
     def window(self) -> int:
-        return self.net.config.window
+        """Frames in one input window (oldest first)."""
+        return self.net.config.span
 
     def normalize(self, frames: torch.Tensor) -> torch.Tensor:
-        """(B, T, H, W, 3) uint8 RGB -> (B, 3T, H, W) float32, channel k = 3t + c."""
+        """(B, span, H, W, 3) uint8 RGB -> (B, 3T, H, W) float32, channel k = 3t + c
+        for the T = ``config.window`` frames the network sees."""
+        stride = self.net.config.frame_stride
+        if stride > 1:
+            frames = frames[:, ::stride]  # (B, T, H, W, 3), the newest frame included
         b, t, h, w, _ = frames.shape
         x = frames.index_select(-1, self.channel_perm).to(torch.float32)
         x = (x - self.pixel_mean) / self.pixel_std  # (B, T, H, W, 3)

@@ -103,6 +103,7 @@ METRIC_KEYS = (
 MAX_LOG_INTERVAL_S = 60.0  # single-process runs also log at least this often
 RESUME_FIXED_FIELDS = (
     "window",
+    "frame_stride",
     "width",
     "up_kernel",
     "dropout",
@@ -118,7 +119,9 @@ RESUME_FIXED_FIELDS = (
 )
 LR_SCHEDULES = ("constant", "cosine")
 # Settings read from the ``init`` checkpoint when neither the TOML file nor a flag sets them.
-INIT_MODEL_FIELDS = ("window", "width", "up_kernel")
+INIT_MODEL_FIELDS = ("window", "frame_stride", "width", "up_kernel")
+# Of those, the ones the weights' shapes fix (a run may change the stride of its init).
+INIT_SHAPE_FIELDS = ("window", "width", "up_kernel")
 
 
 @dataclass(frozen=True)
@@ -137,7 +140,8 @@ class TrainConfig(_Serializable):
     weight_decay: float = 1e-4  # AdamW decoupled weight decay
     dropout: float = 0.2  # conv-block dropout
     width: int = 16  # U-Net channels of the first block
-    window: int = 15  # frames per window
+    window: int = 15  # frames the network sees per prediction
+    frame_stride: int = 1  # those frames are this many camera frames apart
     up_kernel: int = 1  # U-Net up-conv kernel (1 = reference weights, 3 = paper text)
     image_size: int | None = None  # train at this size (px, multiple of 8); None: the dataset's
     device: str = "auto"  # auto | cpu | cuda | cuda:N
@@ -215,7 +219,11 @@ class TrainConfig(_Serializable):
 
     def model_config(self) -> ModelConfig:
         return ModelConfig(
-            window=self.window, width=self.width, up_kernel=self.up_kernel, dropout=self.dropout
+            window=self.window,
+            frame_stride=self.frame_stride,
+            width=self.width,
+            up_kernel=self.up_kernel,
+            dropout=self.dropout,
         )
 
     def learning_rate(self, step: int, total_steps: int) -> float:
@@ -473,20 +481,19 @@ def _prepare_data(
             f"split {config.split} leaves the train split with no presses "
             f"({ds.num_presses} presses in {ds.path})"
         )
-    labels = {}
+    labels, span = {}, config.model_config().span
     for name in ("train", "val"):
-        ends = window_ends(ds.press_id, ds.valid, config.window, presses=split[name])
+        ends = window_ends(ds.press_id, ds.valid, span, presses=split[name])
         labels[name] = WindowLabels.from_dataset(ds, ends, image_size)
     if len(labels["train"]) == 0:
         raise ConfigError(
-            f"window {config.window}: no training window fits in the {len(split['train'])} train "
-            f"presses of {ds.path} (each needs {config.window} consecutive valid frames)"
+            f"window {config.window} (frame stride {config.frame_stride}): no training window "
+            f"fits in the {len(split['train'])} train presses of {ds.path} (each needs {span} "
+            "consecutive valid frames)"
         )
     if len(labels["val"]) == 0:
         logger.warning("no validation windows: best.pt will follow the training loss")
-    mask = window_frame_mask(
-        np.concatenate([labels[n].ends for n in labels]), config.window, len(ds)
-    )
+    mask = window_frame_mask(np.concatenate([labels[n].ends for n in labels]), span, len(ds))
     return _Data(split, labels, image_size, fp, mask)
 
 
@@ -498,6 +505,7 @@ def _split_record(config: TrainConfig, ds: Dataset, data: _Data) -> dict[str, An
         "fractions": list(config.split),
         "seed": config.seed,
         "window": config.window,
+        "frame_stride": config.frame_stride,
         **{name: [int(i) for i in data.split[name]] for name in SPLITS},
         "windows": {name: len(data.labels[name]) for name in data.labels},
     }
@@ -560,7 +568,7 @@ class _Trainer:
         train_labels = data.labels["train"]
         mean, std = pixel_stats(
             self.ds,
-            window_frame_mask(train_labels.ends, config.window, len(self.ds)),
+            window_frame_mask(train_labels.ends, config.model_config().span, len(self.ds)),
             data.image_size,
         )
         if not train_labels.contact.any():
@@ -607,7 +615,7 @@ class _Trainer:
         config, path = self.config, self.config.init
         source = load_checkpoint(path)
         wanted = config.model_config()
-        for name in INIT_MODEL_FIELDS:
+        for name in INIT_SHAPE_FIELDS:
             have, want = getattr(source.meta.model, name), getattr(wanted, name)
             if have != want:
                 raise ConfigError(
@@ -705,7 +713,7 @@ class _Trainer:
             raise ConfigError(
                 f"batch_size {config.batch_size} is not divisible by the {dist.world} processes"
             )
-        per_rank = config.batch_size // dist.world
+        per_rank, span = config.batch_size // dist.world, config.model_config().span
         copies = dist.local_world if self.device.type == "cpu" else 1
         mode = choose_loader_mode(
             config.loader,
@@ -721,13 +729,10 @@ class _Trainer:
                 self.device,
                 progress=config.progress and dist.is_main,
             )
-            sources = {
-                name: DeviceWindows(store, data.labels[name], config.window) for name in data.labels
-            }
+            sources = {name: DeviceWindows(store, data.labels[name], span) for name in data.labels}
         else:
             sources = {
-                name: WindowDataset(config.data, data.labels[name], config.window)
-                for name in data.labels
+                name: WindowDataset(config.data, data.labels[name], span) for name in data.labels
             }
         common = dict(
             device=self.device,

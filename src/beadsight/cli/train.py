@@ -57,13 +57,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         p,
         "init",
         "start from this checkpoint's weights and normalisation (fine-tuning); window, "
-        "width and up-kernel default to the checkpoint's",
+        "frame stride, width and up-kernel default to the checkpoint's",
         metavar="CHECKPOINT",
     )
     _flag(p, "weight-decay", "AdamW weight decay", type=float)
     _flag(p, "dropout", "dropout in the U-Net conv blocks", type=float)
     _flag(p, "width", "U-Net width (channels of the first block)", type=int)
-    _flag(p, "window", "frames per window", type=int)
+    _flag(p, "window", "frames the network sees per prediction", type=int)
+    _flag(
+        p,
+        "frame-stride",
+        "those frames are this many camera frames apart (1: consecutive, the reference)",
+        type=int,
+    )
     _flag(p, "up-kernel", "U-Net up-conv kernel, 1 (reference) or 3", type=int, choices=(1, 3))
     _flag(
         p,
