@@ -178,7 +178,7 @@ def test_image_size_mismatch(make_dataset, model_file):
 
 def test_window_mismatch(make_dataset, model_file, tmp_path, capsys):
     data = make_dataset(frames_per_press=10)
-    with pytest.raises(EvaluationError, match="window=15") as err:
+    with pytest.raises(EvaluationError, match="needs 15 consecutive valid frames") as err:
         evaluate(model_file, data, split="all", device="cpu", progress=False)
     assert str(model_file) in str(err.value) and str(data) in str(err.value)
     code = main(["evaluate", "--checkpoint", str(model_file), "--data", str(data),
