@@ -226,6 +226,11 @@ class TrainConfig(_Serializable):
             dropout=self.dropout,
         )
 
+    @property
+    def span(self) -> int:
+        """Frames in one training window (the model config's span)."""
+        return self.model_config().span
+
     def learning_rate(self, step: int, total_steps: int) -> float:
         """The learning rate of optimizer step ``step`` (0-based) of ``total_steps``."""
         if self.lr_schedule == "constant" or total_steps <= 1:
@@ -481,7 +486,7 @@ def _prepare_data(
             f"split {config.split} leaves the train split with no presses "
             f"({ds.num_presses} presses in {ds.path})"
         )
-    labels, span = {}, config.model_config().span
+    labels, span = {}, config.span
     for name in ("train", "val"):
         ends = window_ends(ds.press_id, ds.valid, span, presses=split[name])
         labels[name] = WindowLabels.from_dataset(ds, ends, image_size)
@@ -568,7 +573,7 @@ class _Trainer:
         train_labels = data.labels["train"]
         mean, std = pixel_stats(
             self.ds,
-            window_frame_mask(train_labels.ends, config.model_config().span, len(self.ds)),
+            window_frame_mask(train_labels.ends, config.span, len(self.ds)),
             data.image_size,
         )
         if not train_labels.contact.any():
@@ -713,7 +718,7 @@ class _Trainer:
             raise ConfigError(
                 f"batch_size {config.batch_size} is not divisible by the {dist.world} processes"
             )
-        per_rank, span = config.batch_size // dist.world, config.model_config().span
+        per_rank, span = config.batch_size // dist.world, config.span
         copies = dist.local_world if self.device.type == "cpu" else 1
         mode = choose_loader_mode(
             config.loader,
