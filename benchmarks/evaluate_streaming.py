@@ -25,7 +25,7 @@ import torch
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.dataset import DatasetWriter
-from beadsight.evaluate import evaluate
+from beadsight.evaluation.evaluate import evaluate
 
 FRAMES_PER_PRESS = 60
 MIB = 2**20

@@ -7,7 +7,7 @@ with p99 <= 2 ms (CUDA graphs).
     .venv/bin/python benchmarks/live_latency.py                  # random reference-size model
     .venv/bin/python benchmarks/live_latency.py --checkpoint best.pt --frames 600 --json
 
-Each row runs ``beadsight.latency.bench_live`` (simulated frames through
+Each row runs ``beadsight.live.bench.bench_live`` (simulated frames through
 ``PressurePredictor.update``): max throughput, sustained at --rate Hz, and the max
 error vs fp32 torch in % of the peak. Backends that are not installed or not
 supported here are listed as skipped. ``compile`` is included with --compile
@@ -22,9 +22,9 @@ import sys
 
 import torch
 
-from beadsight.backends import BackendError, openvino_supports_bf16
+from beadsight.inference.runtimes import BackendError, openvino_supports_bf16
 from beadsight.checkpoint import load_checkpoint
-from beadsight.latency import bench_live, random_model, simulated_frames
+from beadsight.live.bench import bench_live, random_model, simulated_frames
 
 CPU_TARGET = {"hz": 30.0, "p99_ms": 33.0}
 GPU_TARGET = {"hz": 1000.0, "p99_ms": 2.0}

@@ -31,7 +31,7 @@ import torch
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel, load_checkpoint
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.live import LiveSensor
+from beadsight.live.sensor import LiveSensor
 
 MODELS = {  # name -> (image size px, U-Net width, window)
     "tiny": (64, 8, 15),
@@ -85,14 +85,14 @@ def run(name: str, model: PressureModel, args: argparse.Namespace) -> dict:
     sse_count, stream_count = [0], [0]
     with sensor:
         if args.viewer:
-            from beadsight.viewer.server import ViewerServer
+            from beadsight.live.viewer.server import ViewerServer
 
             servers.append(ViewerServer(sensor, port=0))
             threads.append(
                 threading.Thread(target=_sse_client, args=(servers[-1].url, stop, sse_count))
             )
         if args.stream:
-            from beadsight.stream import StreamServer
+            from beadsight.live.stream import StreamServer
 
             servers.append(StreamServer(sensor.geometry, port=0))
             sensor.add_listener(servers[-1])

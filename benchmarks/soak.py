@@ -25,8 +25,8 @@ import time
 import numpy as np
 
 from beadsight.checkpoint import load_checkpoint
-from beadsight.latency import random_model, simulated_frames
-from beadsight.predictor import PressurePredictor
+from beadsight.live.bench import random_model, simulated_frames
+from beadsight.inference.predictor import PressurePredictor
 
 MAX_RSS_GROWTH_MB = 50.0
 CREEP_LIMIT = 1.25  # later blocks' median p50 above this times the earlier blocks' is creep

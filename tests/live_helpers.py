@@ -16,7 +16,7 @@ from conftest import make_press_arrays, synthetic_press_frames
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.live_sources import FrameSource, SourceDisconnected, SourceEnded, SourceFrame
+from beadsight.live.sources import FrameSource, SourceDisconnected, SourceEnded, SourceFrame
 
 TINY = SensorGeometry(image_size_px=64)
 WINDOW = 15

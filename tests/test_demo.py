@@ -8,7 +8,8 @@ import pytest
 
 from beadsight.checkpoint import load_checkpoint
 from beadsight.cli import main
-from beadsight.demo import TRAIN_DEMO_SEED, DemoError, shipped_model_path, training_simulation
+from beadsight.checkpoint import CheckpointError, shipped_model_path
+from beadsight.demo import TRAIN_DEMO_SEED, DemoError, training_simulation
 
 REPORT_FILES = (
     "index.html",
@@ -96,7 +97,7 @@ def test_demo_refuses_a_foreign_folder(tmp_path, tiny_model, capsys):
 def test_shipped_model_is_found_or_named():
     try:
         path = shipped_model_path()
-    except DemoError as e:
+    except CheckpointError as e:
         assert "sim_model.pt" in str(e) and "--checkpoint" in str(e)
     else:
         assert path.is_file() and path.name == "sim_model.pt"

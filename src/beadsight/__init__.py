@@ -9,7 +9,12 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from beadsight import _compat
+
 __version__ = "0.1.0"
+
+_compat.install()  # old module paths (beadsight.predictor, ...) still import, with a warning
+
 
 _API = {
     "CheckpointError": "beadsight.checkpoint",
@@ -19,10 +24,10 @@ _API = {
     "ContactThresholds": "beadsight.config",
     "ModelConfig": "beadsight.config",
     "SensorGeometry": "beadsight.config",
-    "PressurePredictor": "beadsight.predictor",
-    "Reading": "beadsight.predictor",
+    "PressurePredictor": "beadsight.inference.predictor",
+    "Reading": "beadsight.inference.predictor",
     "open_dataset": "beadsight.data.dataset",
-    "predict_recording": "beadsight.predict",
+    "predict_recording": "beadsight.evaluation.predict",
 }
 
 __all__ = ["__version__", *_API]

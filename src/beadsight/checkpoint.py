@@ -14,6 +14,7 @@ anything else a pickle asks for is refused before it can run.
 
 from __future__ import annotations
 
+import importlib.resources
 import json
 import os
 import tempfile
@@ -30,6 +31,7 @@ from beadsight.model import FramesToPressure, UNet, infer_model_config
 
 FORMAT = "beadsight-checkpoint"
 FORMAT_VERSION = 1
+SHIPPED_MODEL = "sim_model.pt"  # the simulated-sensor model, in the package's assets folder
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
 
 
@@ -351,6 +353,17 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except (RuntimeError, TypeError, AttributeError) as e:
         raise CheckpointError(f"{path}: weights do not fit the described model: {e}") from None
     return PressureModel(module, meta, source=str(path)).to(map_location)
+
+
+def shipped_model_path() -> Path:
+    """Path of the model shipped with the package; :class:`CheckpointError` if this install lacks it."""
+    path = Path(str(importlib.resources.files("beadsight").joinpath("assets", SHIPPED_MODEL)))
+    if not path.is_file():
+        raise CheckpointError(
+            f"the shipped sim model {path} is missing from this install; pass --checkpoint PATH "
+            "(a model trained with `beadsight train`, or `beadsight demo --train`)"
+        )
+    return path
 
 
 def checkpoint_summary(path: str | Path) -> dict[str, Any]:

@@ -2,7 +2,7 @@
 
 :func:`run_demo` simulates presses the model never saw (a seed of their own) at
 the model's image size, runs the model over them, scores it with
-:func:`beadsight.evaluate.evaluate` (with the all-zero and mean-label
+:func:`beadsight.evaluation.evaluate.evaluate` (with the all-zero and mean-label
 baselines), and writes a report folder:
 
 * ``metrics.json``, ``predictions.h5`` and the evaluation plots
@@ -36,14 +36,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from beadsight.checkpoint import PressureModel
+from beadsight.checkpoint import PressureModel, shipped_model_path
 from beadsight.config import _Serializable
 from beadsight.errors import BeadSightError
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
 
 logger = logging.getLogger(__name__)
 
-SHIPPED_MODEL = "sim_model.pt"  # in the package's assets folder
 SHIPPED_MODEL_RECORD = "sim_model.md"
 DEMO_SEED = 90_210  # held-out presses; training sets must use other seeds
 TRAIN_DEMO_SEED = 31_337  # the training set of ``demo --train``
@@ -117,17 +116,6 @@ class DemoConfig(_Serializable):
 
 
 # --- the model ----------------------------------------------------------------------
-def shipped_model_path() -> Path:
-    """Path of the shipped checkpoint; :class:`DemoError` if this install lacks it."""
-    resource = importlib.resources.files("beadsight").joinpath("assets", SHIPPED_MODEL)
-    if not resource.is_file():
-        raise DemoError(
-            f"the shipped model beadsight/assets/{SHIPPED_MODEL} is missing from this install "
-            f"({resource}); pass --checkpoint PATH, or run `beadsight demo --train` to train one"
-        )
-    return Path(str(resource))
-
-
 def _model_record() -> str | None:
     resource = importlib.resources.files("beadsight").joinpath("assets", SHIPPED_MODEL_RECORD)
     return resource.read_text() if resource.is_file() else None
@@ -328,8 +316,8 @@ def _evaluate_and_report(
     model: PressureModel, config: DemoConfig, sim_config: SimConfig, seed: int, extra: dict
 ) -> dict:
     """Simulate held-out presses, evaluate, animate, write the report; returns the summary."""
-    from beadsight.evaluate import evaluate
-    from beadsight.metrics import PAPER_METRICS, format_metrics_table
+    from beadsight.evaluation.evaluate import evaluate
+    from beadsight.evaluation.metrics import PAPER_METRICS, format_metrics_table
 
     out = Path(config.out)
     timings: dict[str, float] = dict(extra.pop("timings", {}))
@@ -419,7 +407,7 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict:
     """
     if config.train:
         return run_train_demo(config)
-    from beadsight.predict import as_model
+    from beadsight.evaluation.predict import as_model
 
     t0 = time.perf_counter()
     path = Path(config.checkpoint) if config.checkpoint else shipped_model_path()
@@ -498,7 +486,7 @@ def full_run_estimate(
 
 def run_train_demo(config: DemoConfig) -> dict:
     """Simulate a small training set, train a small model from scratch, evaluate it."""
-    from beadsight.train import TrainConfig, train
+    from beadsight.train.trainer import TrainConfig, train
 
     out = Path(config.out)
     prepare_out_dir(out)
@@ -541,7 +529,7 @@ def run_train_demo(config: DemoConfig) -> dict:
     finally:
         if not config.keep_data:
             train_data.unlink(missing_ok=True)
-    from beadsight.predict import as_model
+    from beadsight.evaluation.predict import as_model
 
     model = as_model(run / "best.pt", config.device)
     t0 = time.perf_counter()

@@ -7,8 +7,8 @@ from pathlib import Path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from beadsight.evaluate import DEFAULT_BATCH_SIZE, SPLIT_CHOICES
-    from beadsight.predict import DEFAULT_BATCH_SIZE as PREDICT_BATCH_SIZE
+    from beadsight.evaluation.evaluate import DEFAULT_BATCH_SIZE, SPLIT_CHOICES
+    from beadsight.evaluation.predict import DEFAULT_BATCH_SIZE as PREDICT_BATCH_SIZE
 
     p = subparsers.add_parser(
         "evaluate",
@@ -70,8 +70,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
-    from beadsight.evaluate import evaluate
-    from beadsight.metrics import format_metrics_table
+    from beadsight.evaluation.evaluate import evaluate
+    from beadsight.evaluation.metrics import format_metrics_table
 
     metrics = evaluate(
         args.checkpoint,
@@ -98,7 +98,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 
 def run_predict(args: argparse.Namespace) -> int:
-    from beadsight.predict import predict_recording, summarize_predictions
+    from beadsight.evaluation.predict import predict_recording, summarize_predictions
 
     out = predict_recording(
         args.checkpoint,

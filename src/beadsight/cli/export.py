@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from beadsight.backends import BACKENDS, PRECISIONS
-from beadsight.export import EXPORT_PRECISIONS, FORMATS
+from beadsight.inference.runtimes import BACKENDS, PRECISIONS
+from beadsight.inference.export import EXPORT_PRECISIONS, FORMATS
 
 
 def _backend_args(p: argparse.ArgumentParser) -> None:
@@ -67,7 +67,7 @@ def register(subparsers) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from beadsight.export import export_model
+    from beadsight.inference.export import export_model
 
     report = export_model(args.checkpoint, args.format, args.out, args.precision)
     if args.json:
@@ -83,7 +83,7 @@ def _export(args: argparse.Namespace) -> int:
 
 def _bench_live(args: argparse.Namespace) -> int:
     from beadsight.checkpoint import load_checkpoint
-    from beadsight.latency import bench_live
+    from beadsight.live.bench import bench_live
 
     model = load_checkpoint(args.checkpoint) if args.checkpoint else None
     result = bench_live(

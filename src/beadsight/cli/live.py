@@ -7,9 +7,9 @@ from pathlib import Path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from beadsight.stream import DEFAULT_PORT as STREAM_PORT
-    from beadsight.viewer.server import DEFAULT_MAX_FPS, DEFAULT_MAX_KPA
-    from beadsight.viewer.server import DEFAULT_PORT as VIEWER_PORT
+    from beadsight.live.stream import DEFAULT_PORT as STREAM_PORT
+    from beadsight.live.viewer.server import DEFAULT_MAX_FPS, DEFAULT_MAX_KPA
+    from beadsight.live.viewer.server import DEFAULT_PORT as VIEWER_PORT
 
     p = subparsers.add_parser(
         "live",
@@ -113,7 +113,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_live_command(args: argparse.Namespace) -> int:
-    from beadsight.live import LiveSensor, run_live
+    from beadsight.live.sensor import LiveSensor, run_live
 
     sensor = LiveSensor(
         args.checkpoint,
@@ -146,7 +146,7 @@ def run_live_command(args: argparse.Namespace) -> int:
 
 
 def run_to_mcap(args: argparse.Namespace) -> int:
-    from beadsight.rosbag import export_mcap
+    from beadsight.live.mcap import export_mcap
 
     print(f"wrote {export_mcap(args.readings, args.out)}")
     return 0

@@ -88,7 +88,7 @@ def _register_collect(sub: argparse._SubParsersAction) -> None:
 
 
 def _collect(args: argparse.Namespace) -> int:
-    from beadsight.collect import (
+    from beadsight.rig.collect import (
         DeviceSpec,
         PressPlan,
         VirtualRigSpec,

@@ -1,0 +1,573 @@
+"""Evaluate a checkpoint on a dataset: the paper's metrics, predictions, plots.
+
+:func:`evaluate` runs the model over every frame of the chosen split that ends a
+full window (the same frames training samples, via
+:func:`beadsight.data.splits.window_ends`), compares with the ground truth of
+:func:`beadsight.data.labels.label_maps`, and accumulates the metrics of
+:mod:`beadsight.evaluation.metrics` batch by batch. With ``out_dir`` it writes:
+
+* ``metrics.json``: the metrics (strict JSON, no NaN), counts, split, names;
+* ``predictions.h5``: ``pred_kpa``/``gt_kpa`` (N, H, W) float32 (gzip),
+  ``force_gt_n``/``force_pred_n`` (N,) N, ``cop_gt_mm``/``cop_pred_mm`` (N, 2) mm
+  (NaN where that map has no positive pressure), ``index`` (N,) dataset frame
+  index, appended batch by batch under a temporary name;
+* ``examples.png``, ``region_error.png``, ``force_traces.png``.
+
+Memory stays bounded by the batch size whatever the dataset's length.
+
+Split selection: ``"test"``/``"val"`` use the press ids the training run stored in
+the checkpoint (``meta.training["split"]``) when they fit the dataset; otherwise
+the split is recomputed with :func:`beadsight.data.splits.split_presses` (with the
+run's fractions and seed when known) and a warning is logged. ``"all"`` uses
+every press.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+from contextlib import ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from beadsight.checkpoint import PressureModel
+from beadsight.config import SensorGeometry
+from beadsight.data.dataset import Dataset, open_dataset
+from beadsight.data.labels import label_maps
+from beadsight.data.splits import DEFAULT_FRACTIONS, SPLITS, split_presses, window_ends
+from beadsight.errors import BeadSightError
+from beadsight.evaluation.metrics import PAPER_METRICS, FrameMetrics, MetricsAccumulator
+from beadsight.evaluation.plots import ForceTrace, plot_examples, plot_force_traces, plot_region_errors
+from beadsight.evaluation.predict import IncrementalH5, as_model
+
+log = logging.getLogger(__name__)
+
+SPLIT_CHOICES = ("test", "val", "all")
+DEFAULT_BATCH_SIZE = 16
+EXAMPLE_PRESSES = 4  # presses shown in examples.png (the frame of peak force of each)
+TRACE_PRESSES = 3  # presses shown in force_traces.png
+MEAN_MAP_MAX_FRAMES = 4096  # training frames averaged for the mean-map baseline
+METRICS_FILE = "metrics.json"
+METRICS_FILE_MODE = 0o644  # mkstemp makes 0600 files; results are meant to be shared
+PREDICTIONS_FILE = "predictions.h5"
+EXAMPLES_PLOT = "examples.png"
+REGION_PLOT = "region_error.png"
+FORCE_PLOT = "force_traces.png"
+DEFINITIONS = {
+    "mae_kpa": "mean over frames of the mean |pred - gt| over all pixels",
+    "force_error_pct": "100 * mean|F_pred - F_gt| / mean F_gt over frames with F_gt > 0; "
+    "F = integral of the map",
+    "cop_error_mm": "distance between pressure-weighted centroids on frames with F_gt >= 2 N; "
+    "an empty prediction is measured from the sensor centre",
+    "iou": "Otsu foreground of the prediction vs the true contact (Otsu of the label, = gt > 0 "
+    "for hard-edged labels) on frames with F_gt >= 2 N; empty prediction -> 0",
+    "region_mae_kpa": "per-frame MAE of all evaluated frames grouped by their press's commanded position on "
+    "a 4x4 grid of the field of view; [row][col] in image orientation; null = no frames",
+}
+
+
+class EvaluationError(BeadSightError):
+    """The checkpoint and the dataset cannot be evaluated together; the message says why."""
+
+
+# --- split selection ----------------------------------------------------------------
+@dataclass(frozen=True)
+class SplitSelection:
+    """Which presses are evaluated, and which count as training presses (for baselines)."""
+
+    name: str  # "test", "val" or "all"
+    press_ids: np.ndarray  # (K,) int64 sorted
+    train_ids: np.ndarray  # (J,) int64 sorted
+    source: str  # "checkpoint", "recomputed" or "all"
+
+
+def _stored_split(training: dict, ds: Dataset) -> tuple[dict[str, np.ndarray] | None, str]:
+    """The checkpoint's stored press ids if they fit ``ds``; else (None, why not).
+
+    ``training`` is ``meta.training`` as the training run writes it: ``split``
+    ({"train", "val", "test"} press ids), ``dataset_fingerprint``
+    (:func:`beadsight.train.windows.dataset_fingerprint`), ``split_fractions``,
+    ``split_seed``. A stored ``num_presses`` (inside ``split``) is checked too.
+    """
+    stored = training.get("split")
+    if not isinstance(stored, dict):
+        return None, "the checkpoint stores no press split (meta.training['split'])"
+    try:
+        ids = {k: np.sort(np.asarray(stored[k], dtype=np.int64).reshape(-1)) for k in SPLITS}
+    except (KeyError, TypeError, ValueError) as e:
+        return None, f"the checkpoint's stored split is malformed ({e!r})"
+    stored_n = stored.get("num_presses")
+    if stored_n is not None and int(stored_n) != ds.num_presses:
+        return None, f"it was made for {stored_n} presses, the dataset has {ds.num_presses}"
+    largest = max((int(v.max()) for v in ids.values() if v.size), default=-1)
+    if largest >= ds.num_presses:
+        return None, f"it names press {largest}, the dataset has {ds.num_presses} presses"
+    stored_fp = training.get("dataset_fingerprint", stored.get("dataset_fingerprint"))
+    if stored_fp is not None:
+        from beadsight.train.windows import dataset_fingerprint
+
+        ours = dataset_fingerprint(ds)
+        if ours != stored_fp:
+            trained_on = training.get("dataset_path", "another dataset")
+            return None, (
+                f"it was made for {trained_on} (dataset_fingerprint {stored_fp}), and "
+                f"{ds.path} has fingerprint {ours}"
+            )
+    return ids, ""
+
+
+def _split_params(training: dict) -> tuple[tuple[float, float, float], int]:
+    """The training run's split fractions and seed (defaults: 70/10/20, seed 0)."""
+    stored = training.get("split") if isinstance(training.get("split"), dict) else {}
+    config = training.get("config") if isinstance(training.get("config"), dict) else {}
+    fractions = (
+        training.get("split_fractions")
+        or stored.get("fractions")
+        or config.get("split")
+        or DEFAULT_FRACTIONS
+    )
+    seed = training.get("split_seed", stored.get("seed", config.get("seed", 0)))
+    return tuple(float(f) for f in fractions), int(seed)  # type: ignore[return-value]
+
+
+def select_split(model: PressureModel, ds: Dataset, split: str) -> SplitSelection:
+    """Press ids to evaluate for ``split`` ("test", "val" or "all"); see the module doc."""
+    if split not in SPLIT_CHOICES:
+        raise EvaluationError(f"--split {split!r}: expected one of {SPLIT_CHOICES}")
+    everything = np.arange(ds.num_presses, dtype=np.int64)
+    if split == "all":
+        return SplitSelection("all", everything, everything, "all")
+    ids, why = _stored_split(model.meta.training, ds)
+    source = "checkpoint"
+    if ids is None:
+        fractions, seed = _split_params(model.meta.training)
+        try:
+            ids = split_presses(ds.num_presses, fractions, seed)
+        except ValueError as e:
+            raise EvaluationError(f"{model.source}: cannot recompute the split: {e}") from None
+        source = "recomputed"
+        log.warning(
+            "not using the checkpoint's %s split: %s; recomputed it with split_presses(%d, "
+            "fractions=%s, seed=%d)",
+            split,
+            why,
+            ds.num_presses,
+            fractions,
+            seed,
+        )
+    return SplitSelection(split, ids[split], ids["train"], source)
+
+
+# --- reading ------------------------------------------------------------------------
+class WindowReader:
+    """Reads frame windows for batches of end frames in increasing order.
+
+    The frames a batch shares with the previous one (the last ``window - 1``) are
+    reused instead of read again; each contiguous run of the rest is read once.
+    """
+
+    def __init__(self, ds: Dataset, window: int, image_size: int | None = None):
+        self.ds = ds
+        self.window = window
+        self.image_size = image_size or ds.image_size  # frames are resized to this (INTER_AREA)
+        self._offsets = np.arange(window - 1, -1, -1, dtype=np.int64)
+        self._index = np.zeros(0, dtype=np.int64)  # sorted frame indices held in _frames
+        self._frames = np.zeros((0, self.image_size, self.image_size, 3), dtype=np.uint8)
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
+        frames = self.ds.read_frames(start, stop)
+        if self.image_size == self.ds.image_size:
+            return frames
+        from beadsight.train.windows import resize_frames
+
+        return resize_frames(frames, self.image_size)
+
+    def __call__(self, ends: np.ndarray) -> np.ndarray:
+        """(B,) end indices -> (B, T, S, S, 3) uint8 RGB windows, oldest frame first.
+
+        S is ``image_size``."""
+        ends = np.asarray(ends, dtype=np.int64)
+        wanted = ends[:, None] - self._offsets[None]  # (B, T)
+        need = np.unique(wanted)
+        if need.size and (need[0] < 0 or need[-1] >= len(self.ds)):
+            raise IndexError(
+                f"windows need frames {need[0]}..{need[-1]}; {self.ds.path} has {len(self.ds)}"
+            )
+        block = np.empty((need.size, *self._frames.shape[1:]), dtype=np.uint8)
+        have = np.isin(need, self._index)
+        block[have] = self._frames[np.searchsorted(self._index, need[have])]
+        missing = need[~have]
+        if missing.size:
+            runs = np.split(missing, np.flatnonzero(np.diff(missing) != 1) + 1)
+            block[~have] = np.concatenate([self._read(int(r[0]), int(r[-1]) + 1) for r in runs])
+        keep = max(need.size - (self.window - 1), 0)
+        self._index, self._frames = need[keep:], block[keep:].copy()
+        return block[np.searchsorted(need, wanted)]
+
+
+def read_windows(ds: Dataset, ends: np.ndarray, window: int) -> np.ndarray:
+    """Frame windows ending at ``ends``: (B,) indices -> (B, T, S, S, 3) uint8 RGB, oldest first."""
+    return WindowReader(ds, window)(ends)
+
+
+def evaluation_geometry(model: PressureModel, ds: Dataset, resize: bool = False) -> SensorGeometry:
+    """The geometry of the evaluated maps: the dataset's, at the model's image size.
+
+    Raises EvaluationError naming both sizes if the model's image size differs from
+    the dataset's, unless ``resize`` (frames are then resized to the model's size
+    by area averaging, as ``beadsight train --image-size`` does, and labels are
+    drawn at that size).
+    """
+    if model.image_size != ds.image_size and not resize:
+        raise EvaluationError(
+            f"image_size mismatch: the checkpoint {model.source} expects image_size="
+            f"{model.image_size} px frames, but the dataset {ds.path} has {ds.image_size} px "
+            "frames (pass --resize to resize the frames to the checkpoint's size)"
+        )
+    mg, dg = model.geometry, ds.geometry
+    if (mg.sensor_size_mm, mg.finger_radius_mm) != (dg.sensor_size_mm, dg.finger_radius_mm):
+        log.warning(
+            "geometry differs: checkpoint %s has sensor %g mm / finger %g mm, dataset %s has "
+            "%g mm / %g mm; labels use the dataset's",
+            model.source,
+            mg.sensor_size_mm,
+            mg.finger_radius_mm,
+            ds.path,
+            dg.sensor_size_mm,
+            dg.finger_radius_mm,
+        )
+    return dg.with_image_size(model.image_size)
+
+
+def subsample(n: int, k: int) -> np.ndarray:
+    """``k <= n`` evenly spaced sorted indices into ``range(n)``, first and last included."""
+    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
+
+
+def evaluation_frames(
+    model: PressureModel, ds: Dataset, selection: SplitSelection, max_frames: int | None
+) -> np.ndarray:
+    """(M,) sorted dataset indices of the frames to evaluate (window ends of the split).
+
+    With ``max_frames``, that many frames evenly spaced over the whole split (a
+    quick estimate of the full evaluation that still covers every press).
+    """
+    if selection.press_ids.size == 0:
+        raise EvaluationError(
+            f"{ds.path}: the {selection.name!r} split has no presses ({ds.num_presses} in the "
+            "dataset); use --split all"
+        )
+    ends = window_ends(ds.press_id, ds.valid, model.window, selection.press_ids)
+    if ends.size == 0:
+        ids = selection.press_ids
+        lengths = [int((ds.valid & (ds.press_id == p)).sum()) for p in ids]
+        raise EvaluationError(
+            f"window mismatch: the checkpoint {model.source} needs {model.window} "
+            f"consecutive valid frames of one press, but the longest press cycle of the "
+            f"{selection.name!r} split of {ds.path} has {max(lengths)} valid frames"
+        )
+    if max_frames is not None and ends.size > max_frames:
+        ends = ends[subsample(ends.size, max_frames)]
+    return ends
+
+
+# --- baselines and examples ---------------------------------------------------------
+def _labels(ds: Dataset, index: np.ndarray, geometry: SensorGeometry) -> np.ndarray:
+    """(B,) frame indices -> (B, S, S) float32 kPa ground truth, S = geometry.image_size_px."""
+    return label_maps(ds.force_n[index], ds.position_mm[index], ds.contact[index], geometry)
+
+
+def mean_gt_map(
+    ds: Dataset, index: np.ndarray, geometry: SensorGeometry, batch_size: int
+) -> np.ndarray:
+    """Mean label over (at most MEAN_MAP_MAX_FRAMES evenly spaced) frames: (S, S) float32 kPa."""
+    if index.size > MEAN_MAP_MAX_FRAMES:
+        index = index[np.linspace(0, index.size - 1, MEAN_MAP_MAX_FRAMES).astype(np.int64)]
+    s = geometry.image_size_px
+    total = np.zeros((s, s))
+    for i in range(0, index.size, batch_size):
+        total += _labels(ds, index[i : i + batch_size], geometry).sum(axis=0, dtype=np.float64)
+    return (total / max(index.size, 1)).astype(np.float32)
+
+
+def _example_frames(ds: Dataset, ends: np.ndarray, count: int) -> np.ndarray:
+    """Up to ``count`` frames, one per press spread over the split: each press's peak force."""
+    presses = np.unique(ds.press_id[ends])
+    picks = presses[
+        np.unique(
+            np.linspace(0, presses.size - 1, min(count, presses.size)).round().astype(np.int64)
+        )
+    ]
+    frames = []
+    for p in picks:
+        candidates = ends[ds.press_id[ends] == p]
+        force = np.where(ds.contact[candidates], ds.force_n[candidates], 0.0)
+        frames.append(candidates[int(np.argmax(force))])
+    return np.asarray(frames, dtype=np.int64)
+
+
+def _prediction_specs(s: int) -> dict:
+    return {
+        "pred_kpa": ((s, s), np.float32, True),
+        "gt_kpa": ((s, s), np.float32, True),
+        "force_gt_n": ((), np.float64, False),
+        "force_pred_n": ((), np.float64, False),
+        "cop_gt_mm": ((2,), np.float64, False),
+        "cop_pred_mm": ((2,), np.float64, False),
+        "index": ((), np.int64, False),
+    }
+
+
+# --- the evaluation -----------------------------------------------------------------
+@dataclass
+class _Collected:
+    """Small per-run state for plots: example maps, per-frame forces of traced presses."""
+
+    example_index: np.ndarray
+    trace_presses: np.ndarray
+    examples: dict
+    trace_rows: list
+
+
+def _collect(col: _Collected, ds: Dataset, batch: np.ndarray, pred, gt, fm: FrameMetrics) -> None:
+    for k in np.flatnonzero(np.isin(batch, col.example_index)):
+        col.examples[int(batch[k])] = (gt[k].copy(), pred[k].copy())
+    for k in np.flatnonzero(np.isin(ds.press_id[batch], col.trace_presses)):
+        col.trace_rows.append(
+            (int(batch[k]), int(ds.press_id[batch[k]]), fm.force_gt_n[k], fm.force_pred_n[k])
+        )
+
+
+def evaluate(
+    checkpoint: PressureModel | str | Path,
+    data: str | Path,
+    split: str = "test",
+    out_dir: str | Path | None = None,
+    *,
+    batch_size: int = DEFAULT_BATCH_SIZE,
+    device: str | torch.device = "auto",
+    max_frames: int | None = None,
+    baselines: bool = False,
+    plots: bool = True,
+    resize: bool = False,
+    progress: bool = True,
+) -> dict:
+    """Evaluate ``checkpoint`` on the ``split`` of dataset ``data``; returns the metrics dict.
+
+    The dict holds mae_kpa, force_error_pct, cop_error_mm, iou (0..1),
+    region_mae_kpa (4x4, None for empty cells), worst_region_mae_kpa, frames and
+    per-metric frame counts (see :meth:`beadsight.evaluation.metrics.MetricsAccumulator.result`),
+    plus split, split_source, presses, checkpoint, dataset, window, image_size,
+    device, paper, definitions and (``baselines=True``) ``baselines``: the same
+    metrics for an all-zero map ("zero") and the mean training label ("mean_gt").
+    ``max_frames`` evaluates that many frames spread evenly over the split.
+    ``resize`` allows a checkpoint trained at another image size (see
+    :func:`evaluation_geometry`). With ``out_dir`` the files of the module
+    docstring are written there.
+    """
+    if batch_size < 1:
+        raise EvaluationError(f"--batch-size must be >= 1, got {batch_size}")
+    if max_frames is not None and max_frames < 1:
+        raise EvaluationError(f"--max-frames must be >= 1, got {max_frames}")
+    model = as_model(checkpoint, device)
+    out = Path(out_dir) if out_dir is not None else None
+    with open_dataset(data) as ds:
+        ds.require_presses()
+        run = _Run(model, ds, evaluation_geometry(model, ds, resize), batch_size)
+        selection = select_split(model, ds, split)
+        ends = evaluation_frames(model, ds, selection, max_frames)
+        log.info(
+            "evaluating %s on %d frames of %d presses (%s split, %s) of %s",
+            model.source,
+            ends.size,
+            np.unique(ds.press_id[ends]).size,
+            selection.name,
+            selection.source,
+            ds.path,
+        )
+        base_maps = run.baseline_maps(selection, ends) if baselines else {}
+        accs, col = run.loop(ends, base_maps, out, selection, progress)
+        metrics = _assemble(accs, model, ds, selection, ends, max_frames)
+        if out is not None:
+            metrics["files"] = {"metrics": METRICS_FILE, "predictions": PREDICTIONS_FILE}
+            if plots:
+                metrics["files"].update(_write_plots(out, ds, run.geometry, col, metrics))
+    if out is not None:
+        write_metrics_json(metrics, out / METRICS_FILE)
+        log.info("wrote %s", out)
+    return metrics
+
+
+@dataclass
+class _Run:
+    """One evaluation: the model, the open dataset and the geometry of the maps."""
+
+    model: PressureModel
+    ds: Dataset
+    geometry: SensorGeometry  # the dataset's, at the model's image size
+    batch_size: int
+
+    def baseline_maps(self, selection: SplitSelection, ends: np.ndarray) -> dict[str, np.ndarray]:
+        """The constant maps scored as baselines: all-zero and the mean training label."""
+        ds, s = self.ds, self.geometry.image_size_px
+        train_ends = window_ends(ds.press_id, ds.valid, self.model.window, selection.train_ids)
+        source = train_ends if train_ends.size else ends
+        return {
+            "zero": np.zeros((s, s), np.float32),
+            "mean_gt": mean_gt_map(ds, source, self.geometry, self.batch_size),
+        }
+
+    def loop(
+        self,
+        ends: np.ndarray,
+        base_maps: dict[str, np.ndarray],
+        out: Path | None,
+        selection: SplitSelection,
+        progress: bool,
+    ) -> tuple[dict[str, MetricsAccumulator], _Collected]:
+        """Predict, label and score ``ends`` batch by batch; append to predictions.h5."""
+        ds, model = self.ds, self.model
+        accs = {name: MetricsAccumulator(self.geometry) for name in ("model", *base_maps)}
+        examples = _example_frames(ds, ends, EXAMPLE_PRESSES)
+        col = _Collected(examples, ds.press_id[examples[:TRACE_PRESSES]], {}, [])
+        reader = WindowReader(ds, model.window, self.geometry.image_size_px)
+        with ExitStack() as stack:
+            writer = None
+            if out is not None:
+                specs = _prediction_specs(self.geometry.image_size_px)
+                writer = stack.enter_context(IncrementalH5(out / PREDICTIONS_FILE, specs))
+                writer.file.attrs.update(_prediction_attrs(model, ds, self.geometry, selection))
+            bar = stack.enter_context(
+                tqdm(total=ends.size, unit="frame", desc="evaluate", disable=not progress)
+            )
+            for i in range(0, ends.size, self.batch_size):
+                batch = ends[i : i + self.batch_size]
+                pred = _predict(model, ds, reader(batch), batch, self.batch_size)
+                gt = _labels(ds, batch, self.geometry)
+                position = ds.position_mm[batch]
+                fm = accs["model"].update(pred, gt, position)
+                for name, base in base_maps.items():
+                    accs[name].update(np.broadcast_to(base, gt.shape), gt, position)
+                if writer is not None:
+                    writer.append(
+                        pred_kpa=pred,
+                        gt_kpa=gt,
+                        force_gt_n=fm.force_gt_n,
+                        force_pred_n=fm.force_pred_n,
+                        cop_gt_mm=fm.cop_gt_mm,
+                        cop_pred_mm=fm.cop_pred_mm,
+                        index=batch,
+                    )
+                _collect(col, ds, batch, pred, gt, fm)
+                bar.update(batch.size)
+        return accs, col
+
+
+def _predict(
+    model: PressureModel, ds: Dataset, windows: np.ndarray, batch: np.ndarray, batch_size: int
+) -> np.ndarray:
+    pred = model.predict(windows, batch_size=batch_size)
+    finite = np.isfinite(pred).reshape(len(pred), -1).all(axis=1)
+    if not finite.all():
+        raise EvaluationError(
+            f"{model.source}: the model predicted NaN/inf for frame {batch[np.argmin(finite)]} "
+            f"of {ds.path}; the checkpoint's weights are probably broken"
+        )
+    return pred
+
+
+def _assemble(accs, model, ds, selection, ends, max_frames) -> dict:
+    metrics = accs["model"].result()
+    metrics.update(
+        split=selection.name,
+        split_source=selection.source,
+        presses=int(np.unique(ds.press_id[ends]).size),
+        checkpoint=str(model.source),
+        dataset=str(ds.path),
+        window=model.window,
+        image_size=model.image_size,
+        device=str(model.device),
+        max_frames=max_frames,
+        paper=dict(PAPER_METRICS),
+        definitions=DEFINITIONS,
+    )
+    if len(accs) > 1:
+        metrics["baselines"] = {name: acc.result() for name, acc in accs.items() if name != "model"}
+        metrics["baselines_note"] = (
+            "zero: an all-zero map; mean_gt: the mean label of the training presses' frames"
+        )
+    return metrics
+
+
+def _prediction_attrs(
+    model: PressureModel, ds: Dataset, geometry: SensorGeometry, selection: SplitSelection
+) -> dict:
+    return {
+        "format": "beadsight-evaluation-predictions",
+        "checkpoint": str(model.source),
+        "dataset": str(ds.path),
+        "split": selection.name,
+        "geometry": geometry.to_json(),
+        "units": json.dumps(
+            {
+                "pred_kpa": "kPa",
+                "gt_kpa": "kPa",
+                "force_gt_n": "N",
+                "force_pred_n": "N",
+                "cop_gt_mm": "mm (x, y)",
+                "cop_pred_mm": "mm (x, y)",
+                "index": "dataset frame index",
+            }
+        ),
+        "cop_note": "cop_*_mm is NaN where that map has no positive pressure",
+    }
+
+
+def _write_plots(
+    out: Path, ds: Dataset, geometry: SensorGeometry, col: _Collected, metrics: dict
+) -> dict[str, str]:
+    files = {}
+    shown = [i for i in col.example_index.tolist() if i in col.examples]
+    if shown:
+        gt = np.stack([col.examples[i][0] for i in shown])
+        pred = np.stack([col.examples[i][1] for i in shown])
+        titles = [f"frame {i} ({ds.force_n[i]:.1f} N)" for i in shown]
+        plot_examples(gt, pred, titles, geometry, out / EXAMPLES_PLOT)
+        files["examples"] = EXAMPLES_PLOT
+    plot_region_errors(
+        metrics["region_mae_kpa"], metrics["region_frames"], geometry, out / REGION_PLOT
+    )
+    files["region_error"] = REGION_PLOT
+    if col.trace_rows:
+        rows = np.asarray(col.trace_rows, dtype=np.float64)
+        traces = []
+        for p in col.trace_presses.tolist():
+            r = rows[rows[:, 1] == p]
+            t = ds.timestamp_s[r[:, 0].astype(np.int64)]
+            traces.append(ForceTrace(f"press {p}", t - t[0], r[:, 2], r[:, 3]))
+        plot_force_traces(traces, out / FORCE_PLOT)
+        files["force_traces"] = FORCE_PLOT
+    return files
+
+
+def write_metrics_json(metrics: dict, path: str | Path) -> Path:
+    """Write ``metrics`` as strict JSON (raises ValueError on NaN/inf), atomically."""
+    path = Path(path)
+    text = json.dumps(metrics, indent=2, allow_nan=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text + "\n")
+        os.chmod(tmp, METRICS_FILE_MODE)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -1,0 +1,1 @@
+"""The calibration rig: press plans and collection from a printer, a scale and a camera."""

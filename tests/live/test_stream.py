@@ -1,0 +1,148 @@
+"""The TCP readings stream, read by the documented client as a separate process."""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+    BACKEND,
+    TINY,
+    WINDOW,
+    ScriptedSource,
+    no_thread_leaks,
+    press_frames,
+    tiny_model,
+    wait_until,
+)
+
+from beadsight.errors import BeadSightError
+from beadsight.live.sensor import LiveSensor, LiveStatus
+from beadsight.live.stream import StreamServer, encode_reading
+
+CLIENT = Path(__file__).resolve().parents[2] / "examples" / "stream_client.py"
+
+
+@pytest.fixture(scope="module")
+def model():
+    return tiny_model()
+
+
+def read_message(stream) -> tuple[dict, bytes]:
+    header = json.loads(stream.readline())
+    return header, stream.read(header["payload_bytes"])
+
+
+def test_client_example_does_not_import_beadsight():
+    source = CLIENT.read_text()
+    assert "beadsight" not in "".join(
+        line for line in source.splitlines() if line.lstrip().startswith(("import", "from"))
+    )
+
+
+def test_separate_client_process_receives_the_readings(model):
+    frames, force = press_frames(presses=2, per_press=30)
+    source = ScriptedSource(frames, forces=force, stall_after=WINDOW - 1)
+    published = []
+    sensor = LiveSensor(model, source, **BACKEND)
+    sensor.on_reading(published.append)
+    with StreamServer(TINY, port=0) as server, sensor:
+        sensor.add_listener(server)
+        client = subprocess.Popen(
+            [sys.executable, str(CLIENT), "--port", str(server.port), "--count", "20"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            wait_until(lambda: server.client_count == 1, 30, "the client to connect")
+            source.release.set()  # frames flow only once the client listens
+            out, err = client.communicate(timeout=60)
+        finally:
+            client.kill()
+    assert client.returncode == 0, err
+    lines = [json.loads(line) for line in out.splitlines()]
+    assert len(lines) == 20
+    by_index = {r.frame_index: r for r in published}
+    for line in lines:
+        reading = by_index[line["frame_index"]]
+        assert line["timestamp_s"] == reading.timestamp_s
+        assert line["force_n"] == pytest.approx(reading.force_n, rel=1e-9)
+        # the map's bytes are the reading's map: its integral is the force
+        assert line["map_force_n"] == pytest.approx(reading.force_n, rel=1e-5)
+        assert line["peak_kpa"] == pytest.approx(float(reading.pressure_kpa.max()), rel=1e-6)
+        if line["cop_mm"] is None:
+            assert not np.all(np.isfinite(reading.cop_mm))
+        else:
+            np.testing.assert_allclose(line["cop_mm"], reading.cop_mm, rtol=1e-9)
+    indices = [line["frame_index"] for line in lines]
+    assert indices[0] == min(by_index) and np.all(np.diff(indices) > 0)
+    assert "status: ok" in err  # status messages reach the client
+
+
+def test_message_format_header_line_then_little_endian_map():
+    class Update:
+        reading = type("R", (), {})()
+        latency_s = 0.012
+        reference_force_n = math.nan
+
+    r = Update.reading
+    r.pressure_kpa = np.arange(12, dtype=np.float32).reshape(3, 4)
+    r.force_n, r.cop_mm, r.has_contact = 1.5, np.array([np.nan, np.nan]), False
+    r.contact_area_mm2, r.timestamp_s, r.latency_s = 0.0, 1.7e9 + 0.25, 0.004
+    r.frame_index, r.dropped_frames = 42, 1
+    message = encode_reading(Update(), seq=7, skipped=2)
+    head, _, payload = message.partition(b"\n")
+    header = json.loads(head)
+    assert header["type"] == "reading" and header["seq"] == 7 and header["skipped"] == 2
+    assert header["cop_mm"] is None and header["reference_force_n"] is None
+    assert (header["height"], header["width"], header["dtype"]) == (3, 4, "<f4")
+    assert header["payload_bytes"] == len(payload) == 48
+    np.testing.assert_array_equal(np.frombuffer(payload, "<f4").reshape(3, 4), r.pressure_kpa)
+
+
+def test_hello_and_status_messages_and_clean_close():
+    with StreamServer(TINY, port=0) as server:
+        server.status(LiveStatus("no_signal", "camera 0 unplugged", 1.0))
+        with socket.create_connection((server.host, server.port)) as sock:
+            stream = sock.makefile("rb")
+            hello, payload = read_message(stream)
+            assert hello["type"] == "hello" and hello["version"] == 1 and payload == b""
+            assert hello["mm_per_px"] == pytest.approx(TINY.mm_per_px)
+            status, _ = read_message(stream)  # late joiners get the current status
+            assert status == {
+                "type": "status",
+                "state": "no_signal",
+                "message": "camera 0 unplugged",
+                "since_s": 1.0,
+                "payload_bytes": 0,
+            }
+            server.close()
+            closed, _ = read_message(stream)
+            assert closed["state"] == "closed"
+            assert stream.readline() == b""  # then EOF
+
+
+def test_client_that_never_reads_does_not_slow_the_sensor(model):
+    frames, _ = press_frames(presses=4, per_press=30)
+    with StreamServer(TINY, port=0) as server:
+        with socket.create_connection((server.host, server.port)) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            wait_until(lambda: server.client_count == 1, 10, "client")
+            with LiveSensor(model, ScriptedSource(frames), **BACKEND) as sensor:
+                sensor.add_listener(server)
+                assert sensor.wait(60)
+            # all 120 - 14 readings were produced although nobody read ~28 MB of maps
+            assert sensor.stats().readings == len(frames) - WINDOW + 1
+
+
+def test_port_in_use_is_a_clear_error():
+    with StreamServer(TINY, port=0) as server:
+        with pytest.raises(BeadSightError, match=f"{server.port}.*--stream-port"):
+            StreamServer(TINY, port=server.port)

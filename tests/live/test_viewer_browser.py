@@ -1,0 +1,182 @@
+"""The live viewer in a real headless Chromium: `beadsight live` on a video file, driven by
+Playwright. Saves screenshots to artifacts/ (printed) for a person to look at."""
+
+from __future__ import annotations
+
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from live_helpers import press_frames, tiny_model, write_video
+
+from beadsight.live.readings import open_readings
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-component-update",
+    "--disable-sync",
+]
+ARTIFACTS = Path(__file__).resolve().parents[2] / "artifacts"
+VIDEO_FPS = 30
+VIDEO_FRAMES = 210  # 7 s: long enough to load the page and watch it update
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not CHROMIUM.exists(), reason="chromium is not installed"),
+]
+
+
+def _lines(stream, out: queue.Queue) -> None:
+    for line in stream:
+        out.put(line.rstrip("\n"))
+    out.put(None)
+
+
+def _wait_line(lines: queue.Queue, pattern: str, timeout_s: float, seen: list[str]) -> re.Match:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise AssertionError(f"no line matching {pattern!r}; output so far: {seen}")
+        line = lines.get(timeout=remaining)
+        if line is None:
+            raise AssertionError(f"beadsight live exited; output: {seen}")
+        seen.append(line)
+        match = re.search(pattern, line)
+        if match:
+            return match
+
+
+def test_viewer_shows_live_readings_then_no_signal(tmp_path):
+    playwright_api = pytest.importorskip("playwright.sync_api")
+    frames, _ = press_frames(presses=4, per_press=VIDEO_FRAMES // 4)
+    video = write_video(tmp_path / "press.avi", frames, fps=VIDEO_FPS)
+    checkpoint = tiny_model(scale_kpa=60.0).save(tmp_path / "tiny.pt")
+    ARTIFACTS.mkdir(exist_ok=True)
+    with playwright_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        command = [
+            sys.executable,
+            "-m",
+            "beadsight",
+            "live",
+            "--checkpoint",
+            str(checkpoint),
+            "--source",
+            str(video),
+            "--backend",
+            "torch",
+            "--precision",
+            "fp32",
+            "--port",
+            "0",
+            "--stream-port",
+            "0",
+            "--record-dir",
+            str(tmp_path),
+            "--report-every",
+            "1",
+        ]
+        proc = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        lines: queue.Queue = queue.Queue()
+        reader = threading.Thread(target=_lines, args=(proc.stdout, lines), daemon=True)
+        reader.start()
+        seen: list[str] = []
+        try:
+            url = _wait_line(lines, r"viewer: (http://\S+)", 60, seen).group(1)
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.goto(url)
+            _check_live_page(page, tmp_path)
+            page.wait_for_function("document.body.classList.contains('no-signal')", timeout=30_000)
+            assert page.locator("#status-state").inner_text() == "ended"
+            assert page.locator(".nosignal").first.is_visible()
+            assert "NO SIGNAL" in page.locator(".nosignal").first.inner_text()
+            assert "end of file" in page.locator("#status-message").inner_text() or "ended" in (
+                page.locator("#status-message").inner_text()
+            )
+            shot = ARTIFACTS / "viewer-no-signal.png"
+            page.screenshot(path=str(shot))
+            print(f"screenshot: {shot}")
+            page.close()
+        finally:
+            browser.close()
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=30)
+            finally:
+                proc.kill()
+                reader.join(10)
+    while (line := lines.get_nowait()) is not None:
+        seen.append(line)
+    assert proc.returncode == 0, seen
+    assert any(line.startswith("final: ") for line in seen), seen
+
+
+def _check_live_page(page, tmp_path: Path) -> None:
+    page.wait_for_function(
+        "document.getElementById('status-state').textContent === 'ok'", timeout=30_000
+    )
+    assert not page.locator(".nosignal").first.is_visible()
+    # frames arrive and the force value changes over time
+    seen = page.wait_for_function(
+        """() => {
+            const w = window, f = document.getElementById('force-value').textContent;
+            w.forces = w.forces || new Set(); w.indices = w.indices || new Set();
+            w.forces.add(f); w.indices.add(document.getElementById('frame-index').textContent);
+            return w.forces.size >= 3 && w.indices.size >= 5 && [...w.forces];
+        }""",
+        polling=50,
+        timeout=20_000,
+    ).json_value()
+    assert all(re.fullmatch(r"\d+\.\d\d", f) for f in set(seen) - {"–"}), seen
+    rate = float(page.locator("#rate").inner_text())
+    assert 10 < rate < 60, rate
+    assert float(page.locator("#latency-p50").inner_text()) > 0
+    # the images were drawn: the map canvas and the camera canvas are not blank
+    for canvas in ("map", "frame", "colorbar", "trace"):
+        lit = page.evaluate(
+            """(id) => { const c = document.getElementById(id);
+                 const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+                 let n = 0; for (let i = 0; i < d.length; i += 4) if (d[i] + d[i+1] + d[i+2] > 60) n++;
+                 return n / (d.length / 4); }""",
+            canvas,
+        )
+        assert lit > 0.01, (canvas, lit)
+    # record button: record a second of readings to HDF5
+    page.click("#record-btn")
+    page.wait_for_function(
+        "/ · [1-9]\\d* readings/.test(document.getElementById('record-info').textContent)",
+        timeout=10_000,
+    )
+    assert page.locator("#record-btn").inner_text() == "Stop"
+    shot = ARTIFACTS / "viewer.png"
+    page.screenshot(path=str(shot))
+    print(f"screenshot: {shot}")
+    page.click("#record-btn")
+    page.wait_for_function(
+        "document.getElementById('record-btn').textContent === 'Record'", timeout=10_000
+    )
+    files = list(tmp_path.glob("beadsight-*.h5"))
+    assert len(files) == 1, sorted(p.name for p in tmp_path.iterdir())
+    with open_readings(files[0]) as rf:
+        assert len(rf) >= 1
+        assert np.all(np.diff(rf.timestamp_s) > 0)
