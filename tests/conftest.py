@@ -86,3 +86,26 @@ def tiny_model() -> PressureModel:
         pixel_mean=[120.0, 120.0, 120.0], pixel_std=[40.0, 40.0, 40.0], output_scale_kpa=10.0,
     )
     return PressureModel.create(meta)
+
+
+@pytest.fixture
+def full_disk(tmp_path: Path):
+    """A real small disk (tmpfs, 256 KiB) that fills up; skips where it cannot be mounted.
+
+    Yields the mount point; writers tested on it must fail with a named error.
+    """
+    import subprocess
+
+    mount = tmp_path / "small-disk"
+    mount.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)],
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root): {done.stderr.strip()}")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)

@@ -1,0 +1,163 @@
+"""Writing files so that a crash, Ctrl-C or a full disk never leaves a damaged file
+under its final name. The only place in beadsight that renames a file into place.
+
+Two patterns:
+
+* **Atomic replace** (small files: JSON, checkpoints, exported models): write a hidden
+  temporary file in the same folder, fsync it, rename it over the target, fsync the
+  folder. :func:`atomic_write` and its ``_bytes`` / ``_text`` / ``_json`` forms.
+* **Partial file** (long recordings written as data arrives): write ``NAME.partial``,
+  and rename it to ``NAME`` with :func:`finish_partial` only after the last write
+  succeeded. Whatever was recorded before a crash stays readable in ``NAME.partial``.
+
+A write that fails (disk full, quota, file size limit) raises :class:`WriteError`
+naming the file and the cause; the temporary file is removed and the target is
+left as it was.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO, Any
+
+from beadsight.errors import BeadSightError
+
+PARTIAL_SUFFIX = ".partial"
+TEMP_SUFFIX = ".tmp"  # hidden ".NAME.<random>.tmp" files of atomic writes
+
+
+class WriteError(BeadSightError):
+    """A file could not be written (disk full, no permission, ...); names the file."""
+
+
+def describe_os_error(e: OSError) -> str:
+    """A short cause for a failed write: 'disk full', 'file size limit reached', ..."""
+    if e.errno in (errno.ENOSPC, errno.EDQUOT):
+        return "disk full"
+    if e.errno == errno.EFBIG:
+        return "file size limit reached"
+    return e.strerror or str(e)
+
+
+def write_error(path: str | Path, e: OSError) -> WriteError:
+    """The :class:`WriteError` for ``e`` raised while writing ``path``."""
+    return WriteError(f"could not write {path}: {describe_os_error(e)}")
+
+
+def default_file_mode() -> int:
+    """The mode a plain ``open(path, "w")`` would give (0666 less the umask)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def fsync_dir(path: str | Path) -> None:
+    """fsync a folder so that a rename in it survives a power cut (no-op where unsupported)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # pragma: no cover - platforms without directory fds
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: str | Path, write: Callable[[IO[bytes]], Any], mode: int | None = None) -> Path:
+    """Call ``write(f)`` on a temporary binary file beside ``path``, then rename it into place.
+
+    ``mode``: the file's permission bits (default: as ``open`` would make them).
+    A failure of any kind removes the temporary file and leaves ``path`` untouched;
+    an ``OSError`` becomes :class:`WriteError`.
+    """
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=TEMP_SUFFIX, dir=path.parent)
+    except OSError as e:
+        raise write_error(path, e) from e
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, default_file_mode() if mode is None else mode)
+        os.replace(tmp, path)
+    except BaseException as e:
+        Path(tmp).unlink(missing_ok=True)
+        if isinstance(e, OSError):
+            raise write_error(path, e) from e
+        raise
+    fsync_dir(path.parent)
+    return path
+
+
+def atomic_write_bytes(path: str | Path, data: bytes, mode: int | None = None) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    return atomic_write(path, lambda f: f.write(data), mode)
+
+
+def atomic_write_text(path: str | Path, text: str, mode: int | None = None) -> Path:
+    """Write UTF-8 ``text`` to ``path`` atomically."""
+    return atomic_write_bytes(path, text.encode("utf-8"), mode)
+
+
+def atomic_write_json(path: str | Path, obj: Any, *, strict: bool = False, mode: int | None = None) -> Path:
+    """Write ``obj`` as indented JSON, atomically.
+
+    ``strict``: refuse NaN/inf (``ValueError``) instead of writing non-standard JSON, and
+    refuse values JSON cannot hold; otherwise they are written with ``str()``.
+    """
+    if strict:
+        text = json.dumps(obj, indent=2, allow_nan=False)
+    else:
+        text = json.dumps(obj, indent=2, default=str)
+    return atomic_write_text(path, text + "\n", mode)
+
+
+def partial_path(path: str | Path) -> Path:
+    """Where a file being recorded lives until it is finished: ``NAME.partial``."""
+    path = Path(path)
+    return path.with_name(path.name + PARTIAL_SUFFIX)
+
+
+def finish_partial(partial: str | Path, path: str | Path) -> Path:
+    """Rename a finished ``partial`` file to its final name ``path`` (and fsync the folder)."""
+    path = Path(path)
+    try:
+        with open(partial, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(partial, path)
+    except OSError as e:
+        raise write_error(path, e) from e
+    fsync_dir(path.parent)
+    return path
+
+
+@contextmanager
+def os_errors_as_write_errors(path: str | Path) -> Iterator[None]:
+    """Turn an ``OSError`` raised inside the block into a :class:`WriteError` naming ``path``."""
+    try:
+        yield
+    except OSError as e:
+        raise write_error(path, e) from e
+
+
+def remove_stale_temps(folder: str | Path, name: str) -> list[Path]:
+    """Remove temporary files an interrupted :func:`atomic_write` of ``folder/name`` left."""
+    removed = []
+    for tmp in Path(folder).glob(f".{name}.*{TEMP_SUFFIX}"):
+        try:
+            tmp.unlink()
+            removed.append(tmp)
+        except OSError:
+            pass
+    return removed
