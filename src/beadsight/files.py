@@ -71,7 +71,9 @@ def fsync_dir(path: str | Path) -> None:
         os.close(fd)
 
 
-def atomic_write(path: str | Path, write: Callable[[IO[bytes]], Any], mode: int | None = None) -> Path:
+def atomic_write(
+    path: str | Path, write: Callable[[IO[bytes]], Any], mode: int | None = None
+) -> Path:
     """Call ``write(f)`` on a temporary binary file beside ``path``, then rename it into place.
 
     ``mode``: the file's permission bits (default: as ``open`` would make them).
@@ -110,7 +112,9 @@ def atomic_write_text(path: str | Path, text: str, mode: int | None = None) -> P
     return atomic_write_bytes(path, text.encode("utf-8"), mode)
 
 
-def atomic_write_json(path: str | Path, obj: Any, *, strict: bool = False, mode: int | None = None) -> Path:
+def atomic_write_json(
+    path: str | Path, obj: Any, *, strict: bool = False, mode: int | None = None
+) -> Path:
     """Write ``obj`` as indented JSON, atomically.
 
     ``strict``: refuse NaN/inf (``ValueError``) instead of writing non-standard JSON, and

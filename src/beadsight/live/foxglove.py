@@ -1,0 +1,233 @@
+"""Live readings in Foxglove (app or web): ``beadsight live --foxglove``.
+
+Runs the Foxglove WebSocket server of ``foxglove-sdk`` (``pip install 'beadsight[ros]'``)
+and logs, per reading (channel names follow :mod:`beadsight.live.ros_messages`):
+
+=================================  ====================  ===========================================
+channel                            schema                content
+=================================  ====================  ===========================================
+``/beadsight/camera``              ``foxglove.RawImage``  the model-input frame, ``rgb8``
+``/beadsight/pressure``            ``foxglove.Grid``      the map in kPa (field ``pressure_kpa``,
+                                                         float32) in the ``beadsight`` frame, metres
+``/beadsight/pressure_image``      ``foxglove.RawImage``  the map colour-mapped, 0..max_kpa (the live
+                                                         viewer's scale), ``rgb8``
+``/beadsight/reading``             JSON                   force_n, cop_m {x, y}, contact_area_m2,
+                                                         has_contact, reference_force_n
+``/beadsight/health``              JSON                   the sensor's state, message and figures
+=================================  ====================  ===========================================
+
+Open Foxglove, connect to ``ws://HOST:PORT`` and import ``docs/foxglove-layout.json``.
+Logging runs on its own thread (a slow client never slows sensing).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from beadsight.config import SensorGeometry
+from beadsight.errors import BeadSightError
+from beadsight.live import ros_messages as msg
+from beadsight.live.publisher import DEFAULT_QUEUE_SIZE, BackgroundPublisher
+
+DEFAULT_PORT = 8766  # 8765 is the TCP readings stream
+DEFAULT_MAX_KPA = 40.0  # top of the colour scale of pressure_image
+PRESSURE_IMAGE = "pressure_image"
+READING = "reading"
+
+READING_SCHEMA = {
+    "type": "object",
+    "properties": {
+        "timestamp_s": {
+            "type": "number",
+            "description": "capture time of the newest frame, unix s",
+        },
+        "force_n": {"type": "number", "description": "total normal force, N"},
+        "cop_m": {
+            "type": "object",
+            "description": "centre of pressure in the beadsight frame, m (null without pressure)",
+            "properties": {"x": {"type": "number"}, "y": {"type": "number"}},
+        },
+        "contact_area_m2": {"type": "number"},
+        "has_contact": {"type": "boolean"},
+        "reference_force_n": {"type": "number", "description": "true force (simulator), or null"},
+    },
+}
+HEALTH_SCHEMA = {
+    "type": "object",
+    "properties": {
+        "state": {"type": "string"},
+        "message": {"type": "string"},
+        "since_s": {"type": "number"},
+        "figures": {"type": "object"},
+    },
+}
+
+
+def _require_foxglove() -> Any:
+    try:
+        import foxglove
+    except ImportError:
+        raise BeadSightError(
+            "--foxglove needs the Foxglove SDK (the 'foxglove-sdk' package): "
+            "pip install 'beadsight[ros]'"
+        ) from None
+    return foxglove
+
+
+def _timestamp(t_s: float) -> Any:
+    from foxglove.messages import Timestamp
+
+    ns = round(t_s * msg.NS_PER_S)
+    return Timestamp(ns // msg.NS_PER_S, ns % msg.NS_PER_S)
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+class FoxgloveServer(BackgroundPublisher):
+    """Serves live updates to Foxglove over WebSocket (a ``LiveListener``).
+
+    geometry: the model's sensor geometry (map size and mm per pixel).
+    host, port: where the server listens (port 0: any free port, see :attr:`port`).
+    max_kpa: top of the colour scale of ``pressure_image``.
+    """
+
+    name = "foxglove"
+
+    def __init__(
+        self,
+        geometry: SensorGeometry,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        namespace: str = msg.DEFAULT_NAMESPACE,
+        max_kpa: float = DEFAULT_MAX_KPA,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+    ):
+        fox = _require_foxglove()
+        from foxglove.channels import GridChannel, RawImageChannel
+        from foxglove.messages import PackedElementField, PackedElementFieldNumericType
+
+        from beadsight.live.viewer.server import colormap_bgr
+
+        if not max_kpa > 0:
+            raise BeadSightError(f"max_kpa must be > 0, got {max_kpa}")
+        self.geometry, self.max_kpa = geometry, max_kpa
+        self._lut_rgb = colormap_bgr()[:, ::-1].copy()
+        self._field = PackedElementField(
+            name="pressure_kpa", offset=0, type=PackedElementFieldNumericType.Float32
+        )
+        self._context = fox.Context()
+        try:
+            self._server = fox.start_server(
+                name="beadsight", host=host, port=port, context=self._context
+            )
+        except Exception as e:
+            raise BeadSightError(f"Foxglove server on {host}:{port}: {e}") from e
+        self.host, self.port = host, self._server.port
+        ctx, topic = self._context, lambda name: msg.topic(namespace, name)
+        self._camera = RawImageChannel(topic(msg.CAMERA), context=ctx)
+        self._pressure = GridChannel(topic(msg.PRESSURE), context=ctx)
+        self._pressure_image = RawImageChannel(topic(PRESSURE_IMAGE), context=ctx)
+        self._reading = fox.Channel(topic(READING), schema=READING_SCHEMA, context=ctx)
+        self._health = fox.Channel(topic(msg.HEALTH), schema=HEALTH_SCHEMA, context=ctx)
+        super().__init__(queue_size)
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self.host}:{self.port}"
+
+    def topics(self) -> list[str]:
+        return [
+            c.topic()
+            for c in (
+                self._camera,
+                self._pressure,
+                self._pressure_image,
+                self._reading,
+                self._health,
+            )
+        ]
+
+    def _raw_image(self, rgb: np.ndarray, t_s: float) -> Any:
+        from foxglove.messages import RawImage
+
+        h, w, _ = rgb.shape
+        return RawImage(
+            timestamp=_timestamp(t_s),
+            frame_id=msg.FRAME_ID,
+            width=w,
+            height=h,
+            encoding="rgb8",
+            step=3 * w,
+            data=np.ascontiguousarray(rgb).tobytes(),
+        )
+
+    def _grid(self, kpa: np.ndarray, t_s: float) -> Any:
+        """The map as a grid in the beadsight frame: row 0 is +y, column 0 is +x, so the
+        grid's origin is the (+x, +y) corner, turned half a turn about z."""
+        from foxglove.messages import Grid, Pose, Quaternion, Vector2, Vector3
+
+        h, w = kpa.shape
+        cell_m = self.geometry.sensor_size_mm / w * msg.M_PER_MM
+        half = w * cell_m / 2
+        return Grid(
+            timestamp=_timestamp(t_s),
+            frame_id=msg.FRAME_ID,
+            pose=Pose(
+                position=Vector3(x=half, y=half, z=0.0),
+                orientation=Quaternion(x=0.0, y=0.0, z=1.0, w=0.0),
+            ),
+            column_count=w,
+            cell_size=Vector2(x=cell_m, y=cell_m),
+            row_stride=4 * w,
+            cell_stride=4,
+            fields=[self._field],
+            data=np.ascontiguousarray(kpa, dtype="<f4").tobytes(),
+        )
+
+    def publish(self, update: Any) -> None:
+        r = update.reading
+        t = float(r.timestamp_s)
+        t_ns = round(t * msg.NS_PER_S)
+        self._camera.log(self._raw_image(update.frame_rgb, t), log_time=t_ns)
+        self._pressure.log(self._grid(r.pressure_kpa, t), log_time=t_ns)
+        levels = len(self._lut_rgb) - 1
+        index = np.clip(np.nan_to_num(r.pressure_kpa) * (levels / self.max_kpa), 0, levels)
+        self._pressure_image.log(
+            self._raw_image(self._lut_rgb[index.astype(np.uint8)], t), log_time=t_ns
+        )
+        cop = np.asarray(r.cop_mm, dtype=float).reshape(2)
+        reading = {
+            "timestamp_s": t,
+            "force_n": float(r.force_n),
+            "cop_m": (
+                {"x": cop[0] * msg.M_PER_MM, "y": cop[1] * msg.M_PER_MM}
+                if np.all(np.isfinite(cop))
+                else None
+            ),
+            "contact_area_m2": float(r.contact_area_mm2) * msg.M2_PER_MM2,
+            "has_contact": bool(r.has_contact),
+            "reference_force_n": _finite(update.reference_force_n),
+        }
+        self._reading.log(reading, log_time=t_ns)
+
+    def publish_status(self, status: Any) -> None:
+        figures = getattr(status, "figures", None) or {}
+        self._health.log(
+            {
+                "state": status.state,
+                "message": status.message,
+                "since_s": status.since_s,
+                "figures": json.loads(json.dumps(figures, default=str)),
+            },
+            log_time=time.time_ns(),
+        )
+
+    def close(self) -> None:
+        self._server.stop()

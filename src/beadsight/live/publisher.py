@@ -1,0 +1,113 @@
+"""A live listener that publishes from its own thread, so that sensing never waits for it.
+
+The sensing thread calls :meth:`BackgroundPublisher.push` for every reading; it only
+stores the update (keeping the newest :attr:`queue_size`, counting the ones it drops)
+and returns. A worker thread hands updates to :meth:`publish`, which subclasses
+implement (ROS 2 over DDS, the Foxglove WebSocket server, ...).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_QUEUE_SIZE = 4  # updates waiting for the worker before the oldest is dropped
+FINISH_TIMEOUT_S = 5.0  # finish() waits this long for the worker to drain
+
+
+class BackgroundPublisher:
+    """Base for listeners (see ``beadsight.live.sensor.LiveListener``) that publish slowly.
+
+    Subclasses implement :meth:`publish` (one ``LiveUpdate``), optionally
+    :meth:`publish_status` (a ``LiveStatus``) and :meth:`close` (release resources,
+    called on the worker thread after the last publish). ``published`` and ``dropped``
+    count updates; ``errors`` counts publish calls that raised (each is logged).
+    """
+
+    name = "publisher"
+
+    def __init__(self, queue_size: int = DEFAULT_QUEUE_SIZE):
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be >= 1, got {queue_size}")
+        self._updates: deque[Any] = deque(maxlen=queue_size)
+        self._statuses: deque[Any] = deque(maxlen=queue_size)
+        self._cond = threading.Condition()
+        self._finished = False
+        self.published = 0
+        self.dropped = 0
+        self.errors = 0
+        self._thread = threading.Thread(
+            target=self._work, name=f"beadsight-{self.name}", daemon=True
+        )
+        self._thread.start()
+
+    # --- called on the sensing thread: store and return ---------------------------------
+    def push(self, update: Any) -> None:
+        with self._cond:
+            if len(self._updates) == self._updates.maxlen:
+                self.dropped += 1
+            self._updates.append(update)
+            self._cond.notify()
+
+    def status(self, status: Any) -> None:
+        with self._cond:
+            self._statuses.append(status)
+            self._cond.notify()
+
+    def finish(self) -> None:
+        """Publish what is waiting, then stop the worker and :meth:`close`."""
+        with self._cond:
+            self._finished = True
+            self._cond.notify()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(FINISH_TIMEOUT_S)
+
+    # --- for subclasses ---------------------------------------------------------------
+    def publish(self, update: Any) -> None:
+        raise NotImplementedError
+
+    def publish_status(self, status: Any) -> None:
+        """Publish a change of the sensor's state (default: nothing)."""
+
+    def close(self) -> None:
+        """Release what the publisher holds (default: nothing)."""
+
+    # --- the worker ---------------------------------------------------------------------
+    def _next(self) -> tuple[list[Any], Any | None, bool]:
+        with self._cond:
+            while not (self._updates or self._statuses or self._finished):
+                self._cond.wait()
+            statuses = list(self._statuses)
+            self._statuses.clear()
+            update = self._updates.popleft() if self._updates else None
+            done = self._finished and not self._updates
+            return statuses, update, done
+
+    def _guarded(self, method: Any, arg: Any) -> bool:
+        try:
+            method(arg)
+            return True
+        except Exception:
+            self.errors += 1
+            logger.exception("%s: publishing failed", self.name)
+            return False
+
+    def _work(self) -> None:
+        try:
+            while True:
+                statuses, update, done = self._next()
+                for status in statuses:
+                    self._guarded(self.publish_status, status)
+                if update is not None and self._guarded(self.publish, update):
+                    self.published += 1
+                if done:
+                    return
+        finally:
+            try:
+                self.close()
+            except Exception:
+                logger.exception("%s: close failed", self.name)

@@ -1,0 +1,149 @@
+"""ROS 2 message contents for readings: one place for topic names, frames, units and
+stamps, shared by the MCAP writer (``live/mcap.py``), the ROS 2 publisher
+(``live/ros2.py``) and the Foxglove server (``live/foxglove.py``).
+
+Each function returns a plain dict laid out like the ROS 2 message (field names and
+nesting as in the ``.msg`` definitions). Units follow ROS (REP 103): metres, newtons,
+seconds; the pressure image stays in kPa (its ``encoding`` is ``32FC1``).
+
+=========================  =====================================  ===============================
+topic (under the namespace) type                                  content
+=========================  =====================================  ===============================
+``pressure``               ``sensor_msgs/msg/Image``              map, ``32FC1`` little-endian, kPa
+``force``                  ``geometry_msgs/msg/WrenchStamped``    ``wrench.force.z`` = total normal
+                                                                  force, N (other components 0)
+``cop``                    ``geometry_msgs/msg/PointStamped``     centre of pressure, m (only when
+                                                                  the map has pressure)
+``contact_area``           ``std_msgs/msg/Float32``               contact area, m^2
+``health``                 ``diagnostic_msgs/msg/DiagnosticArray`` the sensor's state and figures
+``camera``                 ``sensor_msgs/msg/Image``              model-input frame, ``rgb8``
+``reference_force``        ``geometry_msgs/msg/WrenchStamped``    true force when the source knows
+                                                                  it (the simulator)
+=========================  =====================================  ===============================
+
+The ``beadsight`` frame: origin at the sensor centre, x and y along the printer's X and Y
+axes (the calibration frame of ``beadsight.geometry``), z out of the pad; the map's row 0
+is printer +Y, column 0 printer +X (see ``beadsight.geometry.mm_to_px``).
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+import numpy as np
+
+from beadsight.errors import BeadSightError
+
+FRAME_ID = "beadsight"
+DEFAULT_NAMESPACE = "/beadsight"
+PRESSURE, FORCE, COP, CONTACT_AREA, HEALTH, CAMERA, REFERENCE_FORCE = (
+    "pressure",
+    "force",
+    "cop",
+    "contact_area",
+    "health",
+    "camera",
+    "reference_force",
+)
+M_PER_MM = 1e-3
+M2_PER_MM2 = 1e-6
+NS_PER_S = 1_000_000_000
+FLOAT32_BYTES = 4
+
+# diagnostic_msgs/msg/DiagnosticStatus levels
+DIAGNOSTIC_OK, DIAGNOSTIC_WARN, DIAGNOSTIC_ERROR, DIAGNOSTIC_STALE = 0, 1, 2, 3
+
+_ROS_NAMESPACE = re.compile(r"^(/[A-Za-z][A-Za-z0-9_]*)+$")
+
+
+def check_namespace(namespace: str) -> str:
+    """A ROS 2 namespace as given (``/beadsight``, ``/robot/left_finger``); else an error."""
+    if not _ROS_NAMESPACE.match(namespace):
+        raise BeadSightError(
+            f"ROS namespace {namespace!r}: expected '/name' or '/a/b' with each part starting "
+            "with a letter, then letters, digits or '_' (e.g. /beadsight)"
+        )
+    return namespace
+
+
+def topic(namespace: str, name: str) -> str:
+    """The ROS 2 topic ``<namespace>/<name>``, e.g. ``/beadsight/pressure``."""
+    return f"{check_namespace(namespace)}/{name}"
+
+
+def header(timestamp_s: float) -> dict[str, Any]:
+    """``std_msgs/msg/Header`` stamped ``timestamp_s`` (unix time, s)."""
+    ns = round(timestamp_s * NS_PER_S)
+    return {"stamp": {"sec": ns // NS_PER_S, "nanosec": ns % NS_PER_S}, "frame_id": FRAME_ID}
+
+
+def image_message(pressure_kpa: np.ndarray, timestamp_s: float) -> dict[str, Any]:
+    """``sensor_msgs/msg/Image`` (32FC1, kPa) for an (H, W) map."""
+    data = np.ascontiguousarray(pressure_kpa, dtype="<f4")
+    h, w = data.shape
+    return {
+        "header": header(timestamp_s),
+        "height": h,
+        "width": w,
+        "encoding": "32FC1",
+        "is_bigendian": 0,
+        "step": w * FLOAT32_BYTES,
+        "data": data.tobytes(),
+    }
+
+
+def camera_message(frame_rgb: np.ndarray, timestamp_s: float) -> dict[str, Any]:
+    """``sensor_msgs/msg/Image`` (rgb8) for an (H, W, 3) uint8 RGB frame."""
+    data = np.ascontiguousarray(frame_rgb, dtype=np.uint8)
+    h, w, _ = data.shape
+    return {
+        "header": header(timestamp_s),
+        "height": h,
+        "width": w,
+        "encoding": "rgb8",
+        "is_bigendian": 0,
+        "step": w * 3,
+        "data": data.tobytes(),
+    }
+
+
+def wrench_message(force_n: float, timestamp_s: float) -> dict[str, Any]:
+    """``geometry_msgs/msg/WrenchStamped`` with force.z = total normal force (N)."""
+    zero = {"x": 0.0, "y": 0.0, "z": 0.0}
+    return {
+        "header": header(timestamp_s),
+        "wrench": {"force": {"x": 0.0, "y": 0.0, "z": float(force_n)}, "torque": zero},
+    }
+
+
+def point_message(cop_mm: np.ndarray, timestamp_s: float) -> dict[str, Any]:
+    """``geometry_msgs/msg/PointStamped``: centre of pressure (x, y) mm -> metres, z = 0."""
+    x_mm, y_mm = (float(v) for v in np.asarray(cop_mm).reshape(2))
+    return {
+        "header": header(timestamp_s),
+        "point": {"x": x_mm * M_PER_MM, "y": y_mm * M_PER_MM, "z": 0.0},
+    }
+
+
+def area_message(contact_area_mm2: float) -> dict[str, Any]:
+    """``std_msgs/msg/Float32``: contact area in m^2."""
+    return {"data": float(contact_area_mm2) * M2_PER_MM2}
+
+
+def diagnostics_message(
+    level: int, message: str, values: dict[str, Any], timestamp_s: float
+) -> dict[str, Any]:
+    """``diagnostic_msgs/msg/DiagnosticArray`` with one status named ``beadsight``."""
+    return {
+        "header": header(timestamp_s),
+        "status": [
+            {
+                "level": int(level),
+                "name": FRAME_ID,
+                "message": message,
+                "hardware_id": FRAME_ID,
+                "values": [{"key": str(k), "value": str(v)} for k, v in values.items()],
+            }
+        ],
+    }
