@@ -170,14 +170,6 @@ class SerialLines:
         del self._buf[: idx + 1]
         return data.decode("ascii", errors="replace").strip("\r\n\x00 ")
 
-    def reset_input(self) -> None:
-        """Discard anything received but not read yet."""
-        self._buf.clear()
-        try:
-            self._ser.reset_input_buffer()
-        except Exception:  # noqa: BLE001 - best effort on a dying port
-            pass
-
     def close(self) -> None:
         try:
             self._ser.close()
