@@ -8,7 +8,7 @@ folder (default 20 presses x 150 frames of 256x256 textured frames), then measur
 * **device** mode: all frames in one uint8 tensor on the device (load time
   reported separately); windows gathered by index arithmetic, labelled and D4-
   transformed on the device;
-* the training step (:func:`beadsight.train.trainer.optimizer_step`, reference model width
+* the training step (:func:`beadsight.train.step.optimizer_step`, reference model width
   16, window 15) in fp32 and bf16 on batches from the loader,
 
 and prints each loader's rate as a multiple of the training rate (target: >= 10x).
@@ -35,6 +35,7 @@ from train_speed import DTYPES, make_model, sync  # sibling script (benchmarks/ 
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import DatasetWriter, open_dataset
 from beadsight.data.splits import window_ends
+from beadsight.train.step import optimizer_step
 from beadsight.train.windows import (
     DeviceFrames,
     DeviceWindows,
@@ -43,7 +44,6 @@ from beadsight.train.windows import (
     WindowLoader,
     window_frame_mask,
 )
-from beadsight.train.trainer import optimizer_step
 
 FRAMES_PER_WRITE = 50
 

@@ -3,7 +3,7 @@
 Measures, on synthetic frames (the model's cost does not depend on content):
 
 * training samples/s (one optimizer step = normalise + noise + forward + MSE +
-  backward + AdamW, exactly :func:`beadsight.train.trainer.optimizer_step`) in fp32 and
+  backward + AdamW, exactly :func:`beadsight.train.step.optimizer_step`) in fp32 and
   bf16 autocast;
 * eager batch-1 inference latency (uint8 frames in, kPa map out) in fp32 and bf16.
 
@@ -27,7 +27,7 @@ import torch
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.labels import label_maps
-from beadsight.train.trainer import autocast, optimizer_step
+from beadsight.train.step import autocast, optimizer_step
 
 DTYPES = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}
 

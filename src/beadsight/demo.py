@@ -486,7 +486,8 @@ def full_run_estimate(
 
 def run_train_demo(config: DemoConfig) -> dict:
     """Simulate a small training set, train a small model from scratch, evaluate it."""
-    from beadsight.train.trainer import TrainConfig, train
+    from beadsight.train.config import TrainConfig
+    from beadsight.train.trainer import train
 
     out = Path(config.out)
     prepare_out_dir(out)

@@ -20,18 +20,14 @@ from beadsight.checkpoint import CheckpointError, read_checkpoint_file
 from beadsight.cli import main
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import DatasetError, DatasetWriter, open_dataset
-from beadsight.train.windows import dataset_fingerprint
 from beadsight.geometry import disk_pressure_kpa
-from beadsight.train.trainer import (
-    METRIC_KEYS,
-    TrainConfig,
-    _Dist,
-    _Trainer,
-    model_inputs,
-    output_scale_kpa,
-    resolve_train_config,
-    train,
-)
+from beadsight.train.config import TrainConfig, resolve_train_config
+from beadsight.train.distributed import Distributed
+from beadsight.train.prepare import output_scale_kpa
+from beadsight.train.run import METRIC_KEYS
+from beadsight.train.step import model_inputs
+from beadsight.train.trainer import Trainer, train
+from beadsight.train.windows import dataset_fingerprint
 
 FAST = ["--width", "8", "--no-progress"]
 
@@ -127,7 +123,7 @@ def test_input_noise_only_in_training(make_dataset, tmp_path, tiny_model):
             progress=False,
             val_stride=4,
         )
-        trainer = _Trainer(config, _Dist(), torch.device("cpu"))
+        trainer = Trainer(config, Distributed(), torch.device("cpu"))
         trainer.setup()
         vals.append(trainer.validate())
         # validation is noise-free: it equals the network on clean inputs

@@ -10,8 +10,8 @@ import torch
 from beadsight.data.dataset import open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.splits import split_presses, window_ends
+from beadsight.train.augment import D4_ORDER, d4_batch, d4_transform
 from beadsight.train.windows import (
-    D4_ORDER,
     DeviceFrames,
     DeviceWindows,
     WindowDataset,
@@ -19,8 +19,6 @@ from beadsight.train.windows import (
     WindowLoader,
     batches_per_epoch,
     choose_loader_mode,
-    d4_batch,
-    d4_transform,
     dataset_fingerprint,
     epoch_batches,
     pixel_stats,

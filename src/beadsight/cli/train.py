@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from beadsight.train.trainer import TrainConfig
+from beadsight.train.config import TrainConfig
 
 # CLI flag -> TrainConfig field, with argparse options. Defaults stay None so that
 # only flags the user gives override the TOML file / the resumed run's config.
@@ -117,7 +117,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from beadsight.train.trainer import resolve_train_config, train
+    from beadsight.train.config import resolve_train_config
+    from beadsight.train.trainer import train
 
     names = set(TrainConfig.__dataclass_fields__)
     overrides = {k: v for k, v in vars(args).items() if k in names}

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-DEFAULT_FRACTIONS = (0.7, 0.1, 0.2)  # train, val, test (paper)
+from beadsight.config import DEFAULT_SPLIT_FRACTIONS as DEFAULT_FRACTIONS
+
 SPLITS = ("train", "val", "test")
 
 
