@@ -15,6 +15,7 @@ anything else a pickle asks for is refused before it can run.
 from __future__ import annotations
 
 import importlib.resources
+import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +25,7 @@ import numpy as np
 import torch
 
 from beadsight.config import REFERENCE_G_TO_N, ModelConfig, SensorGeometry
-from beadsight.files import atomic_write
+from beadsight.files import atomic_write_bytes
 from beadsight.geometry import PA_PER_KPA
 from beadsight.model import FramesToPressure, UNet, infer_model_config
 
@@ -190,8 +191,15 @@ def _build_module(meta: CheckpointMeta) -> FramesToPressure:
 
 # --- saving -------------------------------------------------------------------------
 def atomic_torch_save(obj: Any, path: str | Path) -> Path:
-    """torch.save to ``path`` atomically: a crash, Ctrl-C or full disk leaves the previous file."""
-    return atomic_write(path, lambda f: torch.save(obj, f))
+    """torch.save to ``path`` atomically: a crash, Ctrl-C or full disk leaves the previous file.
+
+    Serialised in memory first: torch's zip writer turns a failed write into a
+    RuntimeError ("unexpected pos ..."), which would hide the cause; written from bytes,
+    a full disk is a WriteError naming the file.
+    """
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    return atomic_write_bytes(path, buffer.getbuffer())
 
 
 def save_checkpoint(path: str | Path, model: PressureModel, **training_state: Any) -> Path:
