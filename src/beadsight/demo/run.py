@@ -1,118 +1,49 @@
-"""``beadsight demo``: the shipped model on held-out simulated presses, as a report folder.
-
-:func:`run_demo` simulates presses the model never saw (a seed of their own) at
-the model's image size, runs the model over them, scores it with
-:func:`beadsight.evaluation.evaluate.evaluate` (with the all-zero and mean-label
-baselines), and writes a report folder:
-
-* ``metrics.json``, ``predictions.h5`` and the evaluation plots
-  (``examples.png``, ``region_error.png``, ``force_traces.png``);
-* ``animation.gif``: one press, camera frame | true map | predicted map;
-* ``demo.json`` (what was run, seeds, timings) and ``index.html`` (the report).
-
-:func:`run_train_demo` (``beadsight demo --train``) first simulates a small
-training set and trains a small model from scratch, then reports it the same
-way, with the measured training rate and what a full run would take on this
-machine.
-
-The shipped model is ``beadsight/assets/sim_model.pt`` (see ``sim_model.md``
-beside it), found with :mod:`importlib.resources`.
-"""
+"""Running the demo: the model on held-out simulated presses (:func:`run_demo`), and
+``demo --train``, which first trains a small model from scratch (:func:`run_train_demo`)."""
 
 from __future__ import annotations
 
 import dataclasses
-import html
 import importlib.resources
 import json
 import logging
 import math
-import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from beadsight.checkpoint import PressureModel, shipped_model_path
-from beadsight.config import _Serializable
-from beadsight.errors import BeadSightError
+from beadsight.demo.config import (
+    ANIMATION_FILE,
+    DEFAULT_TRAIN_FRACTION,
+    HELDOUT_FILE,
+    INDEX_FILE,
+    MARKER,
+    REFERENCE_BATCH,
+    REFERENCE_EPOCHS,
+    REFERENCE_IMAGE_SIZE,
+    REFERENCE_PRESSES,
+    REFERENCE_WIDTH,
+    SHIPPED_MODEL_RECORD,
+    TIMING_BATCH,
+    TRAIN_DEMO_SEED,
+    TRAIN_DEMO_VAL_STRIDE,
+    DemoConfig,
+    DemoError,
+)
+from beadsight.demo.report import (
+    animation_frames,
+    prepare_out_dir,
+    strongest_press,
+    write_animation,
+    write_index,
+    write_summary,
+)
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
 
 logger = logging.getLogger(__name__)
-
-SHIPPED_MODEL_RECORD = "sim_model.md"
-DEMO_SEED = 90_210  # held-out presses; training sets must use other seeds
-TRAIN_DEMO_SEED = 31_337  # the training set of ``demo --train``
-DEFAULT_OUT = "beadsight-demo"
-MARKER = "demo.json"  # a folder holding this file is a demo report and may be overwritten
-HELDOUT_FILE = "heldout.h5"
-ANIMATION_FILE = "animation.gif"
-INDEX_FILE = "index.html"
-ANIMATION_PANEL_PX = 192  # side of each panel of the animation
-ANIMATION_MARGIN_FRAMES = 12  # frames shown before contact begins and after it ends
-ANIMATION_MAX_FRAMES = 72  # at most this many (consecutive) animated frames
-ANIMATION_HEADER_PX = 22
-# The reference training recipe (reference-facts section 7), for the time estimate.
-REFERENCE_PRESSES = 500
-REFERENCE_EPOCHS = 100
-REFERENCE_BATCH = 64
-REFERENCE_IMAGE_SIZE = 256
-REFERENCE_WIDTH = 16
-TIMING_BATCH = 2  # samples per timed step of the reference-size network
-TRAIN_DEMO_VAL_STRIDE = 4  # demo --train validates on every 4th window (time)
-DEFAULT_TRAIN_FRACTION = 0.7
-
-
-class DemoError(BeadSightError):
-    """The demo cannot run as asked (missing model, bad folder, bad sizes); says why."""
-
-
-@dataclass(frozen=True)
-class DemoConfig(_Serializable):
-    """What ``beadsight demo`` runs. Defaults fit in ~3 minutes on a 2-core CPU."""
-
-    out: str = DEFAULT_OUT  # report folder
-    checkpoint: str | None = None  # None: the shipped model
-    presses: int = 10  # held-out presses to simulate
-    pouches: int = 3  # ... on this many fresh pouches (never seen in training)
-    seed: int = DEMO_SEED  # of the held-out presses
-    beads: int | None = None  # None: the model's training pouch, else the 100-bead preset
-    max_frames: int | None = 800  # frames evaluated, spread evenly over the presses
-    batch_size: int = 16
-    device: str = "auto"
-    keep_data: bool = False  # keep the simulated held-out dataset in the report folder
-    animation_frames: int = ANIMATION_MAX_FRAMES  # consecutive frames in animation.gif
-    progress: bool = True
-    # --- demo --train ---
-    train: bool = False
-    train_presses: int = 16  # simulated training presses
-    train_pouches: int = 4  # ... spread over this many pouches
-    train_steps: int = 40  # optimizer steps
-    train_batch_size: int = 8
-    train_width: int = 8
-    train_image_size: int = 64
-
-    def __post_init__(self) -> None:
-        for name, low in (
-            ("presses", 1),
-            ("pouches", 1),
-            ("train_pouches", 1),
-            ("batch_size", 1),
-            ("train_presses", 3),
-            ("animation_frames", 1),
-            ("train_steps", 1),
-            ("train_batch_size", 1),
-            ("train_width", 1),
-            ("train_image_size", 8),
-        ):
-            value = getattr(self, name)
-            if isinstance(value, bool) or int(value) != value or value < low:
-                raise DemoError(f"{name} must be an integer >= {low}, got {value!r}")
-        if self.max_frames is not None and self.max_frames < 1:
-            raise DemoError(f"max_frames must be >= 1 or None, got {self.max_frames!r}")
 
 
 # --- the model ----------------------------------------------------------------------
@@ -159,146 +90,6 @@ def demo_sim_config(model: PressureModel, beads: int | None, trained_on: dict | 
     return dataclasses.replace(base, image_size_px=size)
 
 
-# --- the report folder ----------------------------------------------------------------
-def prepare_out_dir(out: Path) -> None:
-    """Create ``out``; refuse a non-empty folder that is not an earlier demo report."""
-    if out.exists() and not out.is_dir():
-        raise DemoError(f"{out}: exists and is not a folder; choose another --out")
-    if out.is_dir() and any(out.iterdir()) and not (out / MARKER).is_file():
-        raise DemoError(
-            f"{out}: folder exists, is not empty and is not a beadsight demo report "
-            f"(no {MARKER}); choose another --out"
-        )
-    out.mkdir(parents=True, exist_ok=True)
-
-
-def _colourise(maps_kpa: np.ndarray, vmax_kpa: float) -> np.ndarray:
-    """(..., H, W) kPa -> (..., H, W, 3) uint8 RGB with the viridis colour map, 0..vmax."""
-    from matplotlib import colormaps
-
-    lut = (colormaps["viridis"](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
-    index = np.clip(maps_kpa / max(vmax_kpa, 1e-6) * 255, 0, 255).astype(np.uint8)
-    return lut[index]
-
-
-def _panel(image: np.ndarray, title: str) -> np.ndarray:
-    """Upscale an (S, S, 3) RGB image to the panel size and put a title above it."""
-    px = ANIMATION_PANEL_PX
-    interp = cv2.INTER_NEAREST if image.shape[0] <= px else cv2.INTER_AREA
-    body = cv2.resize(image, (px, px), interpolation=interp)
-    head = np.full((ANIMATION_HEADER_PX, px, 3), 255, np.uint8)
-    cv2.putText(head, title, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
-    return np.vstack([head, body])
-
-
-def animation_frames(
-    model: PressureModel, data: Path, press: int, batch_size: int, count: int = ANIMATION_MAX_FRAMES
-) -> dict:
-    """Consecutive frames around one press's contact: camera RGB, true and predicted maps.
-
-    returns {"index": (K,), "frames": (K, S, S, 3) uint8, "gt": (K, S, S) kPa,
-    "pred": (K, S, S) kPa, "time_s": (K,), "force_gt_n", "force_pred_n": (K,)}.
-    """
-    from beadsight.data.dataset import open_dataset
-    from beadsight.data.labels import label_maps
-    from beadsight.data.splits import window_ends
-    from beadsight.geometry import total_force_n
-
-    with open_dataset(data) as ds:
-        start, stop = (int(v) for v in ds.presses[press])
-        ends = window_ends(ds.press_id, ds.valid, model.window, np.array([press]))
-        lo, hi = start - ANIMATION_MARGIN_FRAMES, stop + ANIMATION_MARGIN_FRAMES
-        ends = ends[(ends >= lo) & (ends < hi)][:count]
-        if ends.size == 0:
-            raise DemoError(f"{data}: press {press} has no frame that ends a full window")
-        first = int(ends[0]) - model.window + 1
-        frames = ds.read_frames(first, int(ends[-1]) + 1)
-        windows = np.stack([frames[e - first - model.window + 1 : e - first + 1] for e in ends])
-        pred = model.predict(windows, batch_size=batch_size)
-        gt = label_maps(ds.force_n[ends], ds.position_mm[ends], ds.contact[ends], ds.geometry)
-        geometry = ds.geometry
-        time_s = ds.timestamp_s[ends] - ds.timestamp_s[ends[0]]
-    return {
-        "index": ends,
-        "frames": frames[ends - first],
-        "gt": gt,
-        "pred": pred,
-        "time_s": time_s,
-        "force_gt_n": total_force_n(gt, geometry),
-        "force_pred_n": total_force_n(pred, geometry),
-    }
-
-
-def write_animation(clip: dict, path: Path, fps: float) -> Path:
-    """Write ``clip`` (see :func:`animation_frames`) as a looping GIF at ``fps``."""
-    from PIL import Image
-
-    vmax = float(max(clip["gt"].max(), np.percentile(clip["pred"], 99.9), 1e-3))
-    gt_rgb, pred_rgb = _colourise(clip["gt"], vmax), _colourise(clip["pred"], vmax)
-    images = []
-    for k in range(len(clip["index"])):
-        row = np.hstack(
-            [
-                _panel(clip["frames"][k], "camera (sensor space)"),
-                _panel(gt_rgb[k], f"true  {clip['force_gt_n'][k]:5.1f} N"),
-                _panel(pred_rgb[k], f"predicted  {clip['force_pred_n'][k]:5.1f} N"),
-            ]
-        )
-        foot = np.full((ANIMATION_HEADER_PX, row.shape[1], 3), 255, np.uint8)
-        text = f"t = {clip['time_s'][k]:4.2f} s   colour: 0 .. {vmax:.0f} kPa (viridis)"
-        cv2.putText(foot, text, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
-        images.append(Image.fromarray(np.vstack([row, foot])))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    images[0].save(
-        path, save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0
-    )
-    return path
-
-
-def _strongest_press(data: Path) -> int:
-    from beadsight.data.dataset import open_dataset
-
-    with open_dataset(data) as ds:
-        ds.require_presses()
-        peaks = [ds.force_n[a:b].max() for a, b in ds.presses]
-    return int(np.argmax(peaks))
-
-
-def write_index(out: Path, summary: dict, table: str) -> Path:
-    """A self-contained index.html for the report folder."""
-    files = summary.get("files", {})
-    images = [
-        name
-        for name in ("animation.gif", "examples.png", "force_traces.png", "region_error.png")
-        if name in files.values()
-    ]
-    notes = "".join(f"<li>{html.escape(n)}</li>" for n in summary.get("notes", []))
-    body = [
-        "<!doctype html><meta charset='utf-8'><title>beadsight demo</title>",
-        "<style>body{font-family:sans-serif;max-width:1000px;margin:2em auto}"
-        "pre{background:#f4f4f4;padding:1em}img{max-width:100%}</style>",
-        "<h1>beadsight demo</h1>",
-        f"<p>{html.escape(summary['description'])}</p>",
-        f"<pre>{html.escape(table)}</pre>",
-        f"<ul>{notes}</ul>",
-        *(
-            [f"<h2>The shipped model</h2><pre>{html.escape(summary['model_record'])}</pre>"]
-            if summary.get("model_record")
-            else []
-        ),
-        *(f"<h2>{html.escape(name)}</h2><img src='{html.escape(name)}'>" for name in images),
-        "<h2>Files</h2><ul>",
-        *(
-            f"<li><a href='{html.escape(f)}'>{html.escape(f)}</a>: {html.escape(k)}</li>"
-            for k, f in sorted(files.items())
-        ),
-        "</ul>",
-    ]
-    path = out / INDEX_FILE
-    path.write_text("\n".join(body))
-    return path
-
-
 # --- running ------------------------------------------------------------------------
 def _simulate(
     config: SimConfig, presses: int, pouches: int, seed: int, path: Path, progress: bool
@@ -341,7 +132,7 @@ def _evaluate_and_report(
         )
         timings["evaluate_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        press = _strongest_press(data)
+        press = strongest_press(data)
         clip = animation_frames(model, data, press, config.batch_size, config.animation_frames)
         write_animation(clip, out / ANIMATION_FILE, sim_config.fps)
         timings["animation_s"] = time.perf_counter() - t0
@@ -387,16 +178,10 @@ def _evaluate_and_report(
         ],
         **extra,
     }
-    _write_json(out / MARKER, summary)
+    write_summary(out, summary)
     write_index(out, summary, table)
     summary["table"] = table
     return summary
-
-
-def _write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=str, allow_nan=False))
-    os.replace(tmp, path)
 
 
 def run_demo(config: DemoConfig = DemoConfig()) -> dict:
