@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from beadsight.config import REFERENCE_G_TO_N, ModelConfig, SensorGeometry
+from beadsight.errors import BeadSightError
 from beadsight.files import atomic_write_bytes
 from beadsight.geometry import PA_PER_KPA
 from beadsight.model import FramesToPressure, UNet, infer_model_config
@@ -35,7 +36,7 @@ SHIPPED_MODEL = "sim_model.pt"  # the simulated-sensor model, in the package's a
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
 
 
-class CheckpointError(ValueError):
+class CheckpointError(BeadSightError, ValueError):
     """A checkpoint file is missing, unreadable, unsafe, or does not match its use."""
 
 

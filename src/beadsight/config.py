@@ -15,6 +15,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, TypeVar
 
+from beadsight.errors import ConfigError  # defined there; importable from here as before
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
@@ -26,10 +28,6 @@ REFERENCE_G_TO_N = 9.81e-3  # the reference code converts grams with g = 9.81 m/
 DEFAULT_SPLIT_FRACTIONS = (0.7, 0.1, 0.2)  # train, val, test fractions of presses (paper)
 
 T = TypeVar("T")
-
-
-class ConfigError(ValueError):
-    """A configuration value is out of range or of the wrong type."""
 
 
 class _Serializable:

@@ -23,13 +23,14 @@ import numpy as np
 from beadsight import __version__
 from beadsight.config import ContactThresholds, SensorGeometry
 from beadsight.data.presses import segment_presses
+from beadsight.errors import BeadSightError
 from beadsight.geometry import force_to_newtons
 
 FORMAT = "beadsight-dataset"
 FORMAT_VERSION = 1
 
 
-class DatasetError(ValueError):
+class DatasetError(BeadSightError, ValueError):
     """A dataset file is missing, corrupt, foreign, or inconsistent; the message names it."""
 
 

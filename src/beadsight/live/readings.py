@@ -42,6 +42,7 @@ import numpy as np
 
 from beadsight import __version__
 from beadsight.config import SensorGeometry
+from beadsight.errors import BeadSightError
 
 logger = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ SCALAR_FIELDS: dict[str, tuple[tuple[int, ...], Any, str]] = {
 }
 
 
-class ReadingsFileError(ValueError):
+class ReadingsFileError(BeadSightError, ValueError):
     """A readings file is missing, malformed or of another format."""
 
 

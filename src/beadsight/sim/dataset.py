@@ -28,6 +28,7 @@ import numpy as np
 from beadsight import __version__
 from beadsight.config import REFERENCE_G_TO_N
 from beadsight.data.dataset import DatasetWriter
+from beadsight.errors import BeadSightError
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
 from beadsight.sim.session import SimFrame, SimulatedSession
 
@@ -36,7 +37,7 @@ logger = logging.getLogger(__name__)
 WRITE_CHUNK_FRAMES = 64  # frames buffered before a write
 
 
-class SimulationError(ValueError):
+class SimulationError(BeadSightError, ValueError):
     """Bad arguments for a simulation (the message names the argument or file)."""
 
 
