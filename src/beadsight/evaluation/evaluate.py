@@ -42,14 +42,23 @@ from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.splits import DEFAULT_FRACTIONS, SPLITS, split_presses, window_ends
 from beadsight.errors import BeadSightError
+from beadsight.evaluation.config import (
+    DEFAULT_DEVICE,
+    DEFAULT_SPLIT,
+    SPLIT_CHOICES,
+)
+from beadsight.evaluation.config import EVALUATE_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.evaluation.metrics import PAPER_METRICS, FrameMetrics, MetricsAccumulator
-from beadsight.evaluation.plots import ForceTrace, plot_examples, plot_force_traces, plot_region_errors
+from beadsight.evaluation.plots import (
+    ForceTrace,
+    plot_examples,
+    plot_force_traces,
+    plot_region_errors,
+)
 from beadsight.evaluation.predict import IncrementalH5, as_model
 
 log = logging.getLogger(__name__)
 
-SPLIT_CHOICES = ("test", "val", "all")
-DEFAULT_BATCH_SIZE = 16
 EXAMPLE_PRESSES = 4  # presses shown in examples.png (the frame of peak force of each)
 TRACE_PRESSES = 3  # presses shown in force_traces.png
 MEAN_MAP_MAX_FRAMES = 4096  # training frames averaged for the mean-map baseline
@@ -347,11 +356,11 @@ def _collect(col: _Collected, ds: Dataset, batch: np.ndarray, pred, gt, fm: Fram
 def evaluate(
     checkpoint: PressureModel | str | Path,
     data: str | Path,
-    split: str = "test",
+    split: str = DEFAULT_SPLIT,
     out_dir: str | Path | None = None,
     *,
     batch_size: int = DEFAULT_BATCH_SIZE,
-    device: str | torch.device = "auto",
+    device: str | torch.device = DEFAULT_DEVICE,
     max_frames: int | None = None,
     baselines: bool = False,
     plots: bool = True,

@@ -43,6 +43,8 @@ from beadsight import __version__
 from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.data.dataset import open_dataset
 from beadsight.errors import BeadSightError
+from beadsight.evaluation.config import DEFAULT_DEVICE, PREDICT_PREPROCESS
+from beadsight.evaluation.config import PREDICT_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
 
 log = logging.getLogger(__name__)
@@ -52,7 +54,6 @@ PREDICTIONS_FORMAT_VERSION = 1
 PREPROCESS_MODES = ("auto", "none", "reference")
 H5_COMPRESSION = "gzip"
 H5_COMPRESSION_LEVEL = 1  # gzip level: ~2x faster than 4 on float maps, ~5 % larger
-DEFAULT_BATCH_SIZE = 8
 READ_CHUNK_FRAMES = 64  # frames read from a dataset at a time
 
 
@@ -346,9 +347,9 @@ def predict_recording(
     input: str | Path,
     out: str | Path,
     *,
-    preprocess: str = "auto",
+    preprocess: str = PREDICT_PREPROCESS,
     batch_size: int = DEFAULT_BATCH_SIZE,
-    device: str | torch.device = "auto",
+    device: str | torch.device = DEFAULT_DEVICE,
     progress: bool = True,
 ) -> Path:
     """Predict a pressure map for every frame of a dataset or video; write ``out`` (HDF5).

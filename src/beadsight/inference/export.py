@@ -46,12 +46,12 @@ import torch
 
 from beadsight import __version__
 from beadsight.checkpoint import PressureModel, load_checkpoint
-from beadsight.errors import BeadSightError
+from beadsight.errors import BeadSightError, ConfigError
+from beadsight.inference.config import EXPORT_FORMATS as FORMATS
+from beadsight.inference.config import EXPORT_PRECISIONS
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("onnx", "openvino")
-EXPORT_PRECISIONS = ("fp32", "bf16")
 ONNX_OPSET = 17
 INPUT_NAME = "frames"
 OUTPUT_NAME = "pressure_kpa"
@@ -245,9 +245,9 @@ def export_model(
     from beadsight.inference.runtimes import check_parity, open_exported
 
     if format not in FORMATS:
-        raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
+        raise ConfigError(f"format must be one of {FORMATS}, got {format!r}")
     if precision not in EXPORT_PRECISIONS:
-        raise ValueError(f"precision must be one of {EXPORT_PRECISIONS}, got {precision!r}")
+        raise ConfigError(f"precision must be one of {EXPORT_PRECISIONS}, got {precision!r}")
     if format == "onnx" and precision != "fp32":
         raise ExportError(
             "ONNX export is fp32 only (onnxruntime's CPU provider has no bf16 convolutions); "

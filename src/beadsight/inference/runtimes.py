@@ -64,14 +64,13 @@ import numpy as np
 import torch
 
 from beadsight.checkpoint import PressureModel
-from beadsight.config import ContactThresholds, SensorGeometry
+from beadsight.config import ConfigError, ContactThresholds, SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.geometry import disk_pressure_kpa
+from beadsight.inference.config import BACKENDS, PRECISIONS
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("torch", "compile", "onnx", "openvino", "cuda")
-PRECISIONS = ("fp32", "bf16")
 CPU_AUTO_ORDER = (("openvino", "bf16"), ("openvino", "fp32"), ("onnx", "fp32"), ("torch", "fp32"))
 CPU_FALLBACK_ORDER = (("compile", "fp32"), ("torch", "fp32"))  # without OpenVINO/ONNX Runtime
 CUDA_AUTO_ORDER = (("cuda", "bf16"), ("cuda", "fp32"))
@@ -241,7 +240,7 @@ class Backend:
 
     def __init__(self, model: PressureModel, precision: str = "fp32"):
         if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+            raise ConfigError(f"precision must be one of {PRECISIONS}, got {precision!r}")
         self.model = model
         self.precision = precision
         self.window = model.window
@@ -713,9 +712,9 @@ def build_backend(
 ) -> Backend:
     """Construct backend ``name`` without any parity check (see :func:`create_backend`)."""
     if name not in BACKENDS:
-        raise ValueError(f"backend must be 'auto' or one of {BACKENDS}, got {name!r}")
+        raise ConfigError(f"backend must be 'auto' or one of {BACKENDS}, got {name!r}")
     if exported_model is not None and name not in ("onnx", "openvino"):
-        raise ValueError(f"exported_model needs backend 'onnx' or 'openvino', not {name!r}")
+        raise ConfigError(f"exported_model needs backend 'onnx' or 'openvino', not {name!r}")
     if name == "torch":
         return TorchBackend(model, precision, device=device, threads=threads)
     if name == "compile":
@@ -810,7 +809,7 @@ def select_backend(
     ``.parity`` (:class:`ParityResult`) attributes.
     """
     if precision not in ("auto", *PRECISIONS):
-        raise ValueError(f"precision must be 'auto' or one of {PRECISIONS}, got {precision!r}")
+        raise ConfigError(f"precision must be 'auto' or one of {PRECISIONS}, got {precision!r}")
     todo = candidates or auto_candidates(precision, device)
     if not todo:
         raise BackendUnavailableError(f"auto: no backend runs {precision} on this machine")
@@ -922,7 +921,7 @@ def create_backend(
     if backend == "auto":
         return select_backend(model, precision, device, cache, threads)
     if precision not in ("auto", *PRECISIONS):
-        raise ValueError(f"precision must be 'auto' or one of {PRECISIONS}, got {precision!r}")
+        raise ConfigError(f"precision must be 'auto' or one of {PRECISIONS}, got {precision!r}")
     prec = "fp32" if precision == "auto" else precision
     result = build_backend(model, backend, prec, device, None, cache, threads)
     if check and not (backend == "torch" and prec == "fp32"):
@@ -957,9 +956,9 @@ def open_exported(
     if backend == "auto":
         backend = "openvino" if path.suffix == ".xml" else "onnx"
     if backend not in ("onnx", "openvino"):
-        raise ValueError(f"{path}: exported models run on 'onnx' or 'openvino', not {backend!r}")
+        raise ConfigError(f"{path}: exported models run on 'onnx' or 'openvino', not {backend!r}")
     if backend == "onnx" and path.suffix != ".onnx":
-        raise ValueError(f"{path}: onnxruntime runs .onnx files; use backend 'openvino'")
+        raise ConfigError(f"{path}: onnxruntime runs .onnx files; use backend 'openvino'")
     prec = meta.get(PRECISION_KEY, "fp32") if precision == "auto" else precision
     result = build_backend(model, backend, prec, None, path, None, threads)
     if check:

@@ -28,7 +28,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import math
 import threading
 import time
 from collections.abc import Iterator
@@ -36,11 +35,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
 from beadsight import __version__
-from beadsight.config import ConfigError, SensorGeometry, _Serializable, load_toml
+from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.recording import RecordingError, RecordingWriter, read_events, read_session
 from beadsight.devices.base import (
     CameraDisconnectedError,
@@ -48,15 +46,20 @@ from beadsight.devices.base import (
     DeviceTimeoutError,
     SafetyError,
 )
+from beadsight.rig.config import (
+    FORCE_LIMIT_N,
+    ON_FORCE_LIMIT,
+    SCALE_TIMEOUT_S,
+    DeviceSpec,
+    VirtualRigSpec,
+)
+from beadsight.rig.plan import PressPlan, PressTarget
 
 logger = logging.getLogger(__name__)
 
-REFERENCE_CENTRE_XY_MM = (151.8, 108.9)  # printer XY of the sensor centre (reference rig)
-PATTERNS = ("random", "grid")
 DWELL_SLICE_MS = 200.0  # the dwell is split into slices this long to check the force
 CAMERA_READ_TIMEOUT_S = 0.5  # recorder thread: wait this long for a frame, then check for stop
 RECORDER_JOIN_S = 5.0
-SCALE_TIMEOUT_S = 2.0  # default: the force check needs a scale reading at most this old
 FRESH_FORCE_FRACTION = 0.5  # above this fraction of the limit, each step waits for a new reading
 STATUS_EXIT = (
     "complete",
@@ -67,137 +70,6 @@ STATUS_EXIT = (
     "printer_error",
     "scale_error",
 )
-
-
-@dataclass(frozen=True)
-class PressTarget:
-    """One press: its index, where (absolute printer mm) and whether it is a calibration press."""
-
-    index: int
-    x_mm: float
-    y_mm: float
-    z_mm: float
-    kind: str  # "calibration" or "press"
-
-
-@dataclass(frozen=True)
-class PressPlan(_Serializable):
-    """Where and how deep to press. Defaults: the reference pattern (reference-facts 5).
-
-    Calibration presses (at the centre, mid-depth) come first, then ``presses`` presses
-    at random (uniform within +-``range_mm`` in X and Y, seeded) or grid locations, each
-    with a depth drawn uniformly from ``z_press_mm``.
-    """
-
-    presses: int = 500  # data presses (calibration presses come on top)
-    pattern: str = "random"  # "random" (uniform) or "grid" (a square grid, row by row)
-    seed: int = 0  # seeds locations and depths: the same seed gives the same plan
-    centre_xy_mm: tuple[float, float] = REFERENCE_CENTRE_XY_MM  # printer XY of sensor centre
-    range_mm: float = 13.75  # presses within +-this of the centre, X and Y
-    z_clear_mm: float = 137.5  # printer Z for travel between presses
-    z_press_mm: tuple[float, float] = (127.0, 128.0)  # press depth Z range (uniform)
-    travel_feed_mm_min: float = 700.0  # G1 F700: travel and rise
-    position_feed_mm_min: float = 3000.0  # after homing: rise and go over the sensor
-    press_feed_mm_min: float = 200.0  # G1 F200: descent
-    dwell_ms: float = 1000.0  # G4 P1000 at the bottom
-    settle_ms: float = 500.0  # G4 at the clear height after each press (force back to zero)
-    calibration_presses: int = 3  # presses at the centre before the plan
-    descend_step_mm: float = 0.25  # descent step below check_below_z_mm (force checked between)
-    check_below_z_mm: float | None = None  # None: 3 mm above the highest press Z
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "centre_xy_mm", tuple(float(v) for v in self.centre_xy_mm))
-        object.__setattr__(self, "z_press_mm", tuple(float(v) for v in self.z_press_mm))
-        if self.presses < 0 or self.calibration_presses < 0:
-            raise ConfigError("presses and calibration_presses must be >= 0")
-        if self.pattern not in PATTERNS:
-            raise ConfigError(f"pattern must be one of {PATTERNS}, got {self.pattern!r}")
-        if len(self.centre_xy_mm) != 2 or len(self.z_press_mm) != 2:
-            raise ConfigError("centre_xy_mm and z_press_mm must have two values each")
-        lo, hi = self.z_press_mm
-        if not lo <= hi < self.z_clear_mm:
-            raise ConfigError(
-                f"z_press_mm {self.z_press_mm} must be an increasing range below z_clear_mm "
-                f"({self.z_clear_mm})"
-            )
-        if not self.range_mm >= 0:
-            raise ConfigError(f"range_mm must be >= 0, got {self.range_mm}")
-        for name in (
-            "travel_feed_mm_min",
-            "position_feed_mm_min",
-            "press_feed_mm_min",
-            "descend_step_mm",
-        ):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
-        if self.dwell_ms < 0 or self.settle_ms < 0:
-            raise ConfigError("dwell_ms and settle_ms must be >= 0")
-
-    @property
-    def step_start_z_mm(self) -> float:
-        """Z below which the descent is stepped and the force checked."""
-        if self.check_below_z_mm is not None:
-            return min(self.check_below_z_mm, self.z_clear_mm)
-        return min(self.z_press_mm[1] + 3.0, self.z_clear_mm)
-
-    @property
-    def total(self) -> int:
-        return self.calibration_presses + self.presses
-
-    def targets(self) -> list[PressTarget]:
-        """Every press of the plan, in order (deterministic for a seed)."""
-        rng = np.random.default_rng(self.seed)
-        cx, cy = self.centre_xy_mm
-        lo, hi = self.z_press_mm
-        out = [
-            PressTarget(k, cx, cy, (lo + hi) / 2, "calibration")
-            for k in range(self.calibration_presses)
-        ]
-        if self.pattern == "random":
-            xy = rng.uniform(-self.range_mm, self.range_mm, size=(self.presses, 2))
-        else:
-            side = max(1, math.ceil(math.sqrt(self.presses)))
-            axis = np.linspace(-self.range_mm, self.range_mm, side) if side > 1 else np.zeros(1)
-            gx, gy = np.meshgrid(axis, axis[::-1])
-            xy = np.stack([gx.ravel(), gy.ravel()], axis=1)[: self.presses]
-        depths = rng.uniform(lo, hi, size=self.presses)
-        base = self.calibration_presses
-        out += [
-            PressTarget(base + k, cx + float(dx), cy + float(dy), float(z), "press")
-            for k, ((dx, dy), z) in enumerate(zip(xy, depths, strict=True))
-        ]
-        return out
-
-    @classmethod
-    def from_toml(cls, path: str | Path, **overrides: Any) -> PressPlan:
-        """Plan from a TOML file (keys as the fields; a ``[plan]`` table also works);
-        ``overrides`` (non-None) win."""
-        data = load_toml(path)
-        data = data.get("plan", data)
-        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
-        if unknown:
-            raise ConfigError(f"{path}: unknown plan field(s) {sorted(unknown)}")
-        data.update({k: v for k, v in overrides.items() if v is not None})
-        try:
-            return cls.from_dict(data)
-        except (TypeError, ValueError) as e:
-            raise ConfigError(f"{path}: {e}") from None
-
-    @classmethod
-    def for_simulator(cls, sim_config: Any, **overrides: Any) -> PressPlan:
-        """The reference pattern on a simulated rig (its centre, heights and feeds)."""
-        kwargs = {
-            "centre_xy_mm": sim_config.centre_xy_mm,
-            "range_mm": sim_config.press_range_mm,
-            "z_clear_mm": sim_config.clear_z_mm,
-            "z_press_mm": sim_config.press_z_range_mm,
-            "travel_feed_mm_min": sim_config.travel_feed_mm_min,
-            "press_feed_mm_min": sim_config.descend_feed_mm_min,
-            "dwell_ms": sim_config.dwell_s * 1000.0,
-            "settle_ms": sim_config.pause_s * 1000.0,
-        }
-        kwargs.update({k: v for k, v in overrides.items() if v is not None})
-        return cls(**kwargs)
 
 
 @dataclass
@@ -510,8 +382,8 @@ def collect(
     out: str | Path,
     *,
     resume: bool = False,
-    force_limit_n: float = 40.0,
-    on_force_limit: str = "stop",
+    force_limit_n: float = FORCE_LIMIT_N,
+    on_force_limit: str = ON_FORCE_LIMIT[0],
     metadata: dict[str, Any] | None = None,
     chunk_frames: int | None = None,
     progress: bool = True,
@@ -531,8 +403,8 @@ def collect(
     (Ctrl-C, force limit, camera lost, disk full, printer error): the recording is
     closed and readable in every case.
     """
-    if on_force_limit not in ("stop", "skip"):
-        raise ConfigError(f"on_force_limit must be 'stop' or 'skip', got {on_force_limit!r}")
+    if on_force_limit not in ON_FORCE_LIMIT:
+        raise ConfigError(f"on_force_limit must be one of {ON_FORCE_LIMIT}, got {on_force_limit!r}")
     if not force_limit_n > 0:
         raise ConfigError(f"force_limit_n must be > 0, got {force_limit_n}")
     out = Path(out)
@@ -704,21 +576,6 @@ def _close_writer(writer, recorder, status, message, done, session) -> tuple[str
 
 
 # --- devices for the command line ---------------------------------------------------------
-@dataclass(frozen=True)
-class DeviceSpec:
-    """Which devices to open: serial ports and a camera source (index or video file)."""
-
-    printer_port: str
-    scale_port: str
-    camera: int | str
-    printer_baud: int = 115200  # Marlin over USB
-    scale_baud: int = 57600  # the HX711 sketch
-    scale_protocol: str = "auto"  # "auto", "beadsight" (our firmware) or "reference"
-    camera_width: int | None = 1280
-    camera_height: int | None = 1024
-    camera_fps: float = 30.0
-
-
 @contextlib.contextmanager
 def open_devices(
     spec: DeviceSpec, envelope: Any = None, camera: Any = None
@@ -770,18 +627,6 @@ def collect_with_hardware(
             metadata={"virtual": False, **kwargs.pop("metadata", {})},
             **kwargs,
         )
-
-
-@dataclass(frozen=True)
-class VirtualRigSpec:
-    """The simulated rig for ``beadsight collect --virtual``."""
-
-    time_scale: float = 1.0  # simulated seconds per host second
-    camera_mode: str = "raw"  # "raw" (1280x1024 fisheye, slow to render) or "sensor"
-    image_size_px: int = 256  # sensor-space frame size ("sensor" mode)
-    camera_fps: float | None = None  # default: the simulator's (30)
-    seed: int = 0  # the simulated pouch
-    scale_protocol: str = "beadsight"
 
 
 def simulator_config(spec: VirtualRigSpec) -> Any:

@@ -10,24 +10,33 @@
 See ``docs/simulator.md``.
 """
 
-from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
-from beadsight.sim.dataset import SimulationError, sim_config_for, simulate_dataset
-from beadsight.sim.press import Press, PressCycle, sample_presses
-from beadsight.sim.scale import SimulatedScale
-from beadsight.sim.session import SimFrame, SimulatedSession
-from beadsight.sim.simulator import PouchSimulator
+from __future__ import annotations
 
-__all__ = [
-    "PRESET_BEAD_COUNTS",
-    "PouchSimulator",
-    "Press",
-    "PressCycle",
-    "SimConfig",
-    "SimFrame",
-    "SimulatedScale",
-    "SimulatedSession",
-    "SimulationError",
-    "sample_presses",
-    "sim_config_for",
-    "simulate_dataset",
-]
+import importlib
+from typing import Any
+
+# The names above, each loaded from its module on first use (so reading SimConfig does
+# not load the simulator, scipy or h5py).
+_NAMES = {
+    "PRESET_BEAD_COUNTS": "beadsight.sim.config",
+    "PouchSimulator": "beadsight.sim.simulator",
+    "Press": "beadsight.sim.press",
+    "PressCycle": "beadsight.sim.press",
+    "SimConfig": "beadsight.sim.config",
+    "SimFrame": "beadsight.sim.session",
+    "SimulatedScale": "beadsight.sim.scale",
+    "SimulatedSession": "beadsight.sim.session",
+    "SimulationError": "beadsight.sim.dataset",
+    "sample_presses": "beadsight.sim.press",
+    "sim_config_for": "beadsight.sim.dataset",
+    "simulate_dataset": "beadsight.sim.dataset",
+}
+
+__all__ = sorted(_NAMES)
+
+
+def __getattr__(name: str) -> Any:
+    module = _NAMES.get(name)
+    if module is None:
+        raise AttributeError(f"module 'beadsight.sim' has no attribute {name!r}")
+    return getattr(importlib.import_module(module), name)
