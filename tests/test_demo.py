@@ -6,10 +6,9 @@ import json
 
 import pytest
 
-from beadsight.checkpoint import load_checkpoint
+from beadsight.checkpoint import CheckpointError, load_checkpoint, shipped_model_path
 from beadsight.cli import main
-from beadsight.checkpoint import CheckpointError, shipped_model_path
-from beadsight.demo import TRAIN_DEMO_SEED, DemoError, training_simulation
+from beadsight.demo import TRAIN_DEMO_SEED, training_simulation
 
 REPORT_FILES = (
     "index.html",

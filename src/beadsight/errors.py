@@ -25,4 +25,4 @@ class ConfigError(BeadSightError, ValueError):
 
 # What the CLI prints as one line without a traceback: errors of the user's making. A
 # missing input file is one even when a library (h5py, OpenCV) raises it.
-USER_ERRORS: tuple[type[BaseException], ...] = (BeadSightError, FileNotFoundError, ValueError)
+USER_ERRORS: tuple[type[BaseException], ...] = (BeadSightError, FileNotFoundError)

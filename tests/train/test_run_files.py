@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 
 import pytest
-import torch
+from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight import load_checkpoint
 from beadsight.cli import main
@@ -16,14 +16,6 @@ from beadsight.train.trainer import train
 
 # width 1: checkpoints of ~80 KB (last.pt) and ~25 KB (best.pt) fit the 256 KiB test disk
 SMALL = ["--width", "1", "--batch-size", "4", "--no-progress", "--device", "cpu"]
-
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _fill(disk: Path, leave_bytes: int) -> None:
@@ -76,8 +68,13 @@ def test_write_error_from_the_library_names_the_file(make_dataset, full_disk):
     data = make_dataset()
     _fill(full_disk, 40_000)
     config = TrainConfig(
-        data=str(data), out=str(full_disk / "run"), width=1, batch_size=4, steps=2,
-        progress=False, device="cpu",
+        data=str(data),
+        out=str(full_disk / "run"),
+        width=1,
+        batch_size=4,
+        steps=2,
+        progress=False,
+        device="cpu",
     )
     with pytest.raises(WriteError, match=r"last\.pt: disk full"):
         train(config)
@@ -91,7 +88,9 @@ def test_resume_removes_temporary_files_a_killed_run_left(make_dataset, tmp_path
     for name in stale:
         (run / name).write_bytes(b"half a checkpoint")
     (run / "notes.tmp").write_text("not ours")  # not a temporary file of a run file
-    assert main(["train", "--data", str(data), "--out", str(run), "--steps", "3", "--resume",
-                 *SMALL]) == 0
+    assert (
+        main(["train", "--data", str(data), "--out", str(run), "--steps", "3", "--resume", *SMALL])
+        == 0
+    )
     assert _temps(run) == ["notes.tmp"]
     assert load_checkpoint(run / "last.pt").meta.training["step"] == 3

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight import load_checkpoint
 from beadsight.checkpoint import CheckpointError, read_checkpoint_file
@@ -30,15 +31,6 @@ from beadsight.train.trainer import Trainer, train
 from beadsight.train.windows import dataset_fingerprint
 
 FAST = ["--width", "8", "--no-progress"]
-
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The test machine is shared: one intra-op thread avoids spin-wait thrashing."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def cli(*args) -> int:

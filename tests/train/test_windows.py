@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight.data.dataset import open_dataset
 from beadsight.data.labels import label_maps
@@ -26,15 +27,6 @@ from beadsight.train.windows import (
 )
 
 T = 15
-
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The test machine is shared: one intra-op thread avoids spin-wait thrashing."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture

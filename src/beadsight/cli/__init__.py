@@ -1,8 +1,15 @@
 """The ``beadsight`` command line: argument parsing only; every command calls the library.
 
-Each area registers its subcommands in its own module (``cli/core.py``,
-``cli/sim.py``, ...) through ``register(subparsers)``; each handler takes the
-parsed ``argparse.Namespace`` and returns an exit code.
+Each area registers its subcommands in its own module (``cli/train.py``,
+``cli/sim.py``, ...) through ``register(commands)``: a name, a help line and two
+functions, one adding the command's arguments and one running it (taking the parsed
+``argparse.Namespace``, returning an exit code). Only the command being run gets its
+arguments, and area modules import the library inside those functions, so
+``beadsight --help`` and ``beadsight CMD --help`` start without torch.
+
+Errors: a :class:`~beadsight.errors.BeadSightError` (or a missing file) is the user's to
+fix and prints one line, exit 1. Anything else is a bug in beadsight: it prints
+"internal error" (with the traceback under ``-v``), exit 70.
 """
 
 from __future__ import annotations
@@ -11,37 +18,88 @@ import argparse
 import importlib
 import logging
 import sys
+import traceback
+from collections.abc import Callable, Iterable, Sequence
 
 from beadsight import __version__
 
-AREAS = ("data", "train", "evaluate", "sim", "rig", "export", "live")  # modules under beadsight.cli, in help order
+AREAS = ("data", "train", "evaluate", "sim", "rig", "export", "live")  # modules, in help order
+EXIT_USER_ERROR = 1
+EXIT_INTERNAL_ERROR = 70  # EX_SOFTWARE (sysexits.h)
+EXIT_INTERRUPTED = 130
+
+Handler = Callable[[argparse.Namespace], "int | None"]
 
 
-class UserError(Exception):
-    """An error caused by the user's input; printed without a traceback."""
+class Commands:
+    """The subcommands of ``beadsight``: registered by name and help line; the arguments
+    of each are added only when it is the command being run (or all, for ``build_all``)."""
+
+    def __init__(self, subparsers: argparse._SubParsersAction):
+        self._subparsers = subparsers
+        self._pending: dict[str, tuple[argparse.ArgumentParser, Callable]] = {}
+
+    def add(
+        self,
+        name: str,
+        *,
+        help: str,
+        arguments: Callable[[argparse.ArgumentParser], None],
+        run: Handler | None = None,
+        description: str | None = None,
+    ) -> None:
+        """Register ``beadsight NAME``: ``arguments(parser)`` adds its options when needed,
+        ``run(args)`` runs it (None: ``arguments`` sets ``func`` itself, e.g. for nested
+        subcommands)."""
+        parser = self._subparsers.add_parser(name, help=help, description=description or help)
+        if run is not None:
+            parser.set_defaults(func=run)
+        self._pending[name] = (parser, arguments)
+
+    @property
+    def names(self) -> list[str]:
+        return list(self._subparsers.choices)
+
+    def build(self, name: str) -> None:
+        """Add the arguments of command ``name`` (once)."""
+        entry = self._pending.pop(name, None)
+        if entry is not None:
+            parser, arguments = entry
+            arguments(parser)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentParser:
+    """The ``beadsight`` parser, with the arguments of ``commands`` (None: of every command).
+
+    ``main`` asks only for the command it runs; tests and docs take them all.
+    """
     parser = argparse.ArgumentParser(
         prog="beadsight",
-        description="BeadSight visuo-tactile sensor toolkit: simulate, collect, train, evaluate, run live.",
+        description="BeadSight visuo-tactile sensor toolkit: simulate, collect, train, "
+        "evaluate, run live.",
     )
     parser.add_argument("--version", action="version", version=f"beadsight {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", help="debug logging and full tracebacks"
+    )
+    registry = Commands(parser.add_subparsers(dest="command", metavar="COMMAND"))
     for area in AREAS:
-        try:
-            module = importlib.import_module(f"beadsight.cli.{area}")
-        except ModuleNotFoundError as e:
-            if e.name == f"beadsight.cli.{area}":
-                continue
-            raise
-        module.register(sub)
+        importlib.import_module(f"beadsight.cli.{area}").register(registry)
+    for name in registry.names if commands is None else commands:
+        registry.build(name)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def command_name(argv: Sequence[str]) -> str | None:
+    """The subcommand in ``argv``: its first word that is not an option (the top-level
+    options take no values)."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    name = command_name(argv)
+    parser = build_parser([name] if name else [])
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
@@ -51,16 +109,32 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    return run_command(args)
+
+
+def run_command(args: argparse.Namespace) -> int:
+    """Run the parsed command; errors become one line (the user's) or an internal error."""
     from beadsight.errors import USER_ERRORS
 
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except USER_ERRORS as e:
         print(f"beadsight {args.command}: error: {e}", file=sys.stderr)
-        return 1
+        return EXIT_USER_ERROR
+    except Exception as e:  # noqa: BLE001 - a bug: say so, never as a user error
+        print(f"beadsight {args.command}: internal error: {type(e).__name__}: {e}", file=sys.stderr)
+        if args.verbose:
+            traceback.print_exc()
+        else:
+            print(
+                "This is a bug in beadsight. Rerun with -v for the traceback, and please "
+                "report it with that output.",
+                file=sys.stderr,
+            )
+        return EXIT_INTERNAL_ERROR
 
 
 if __name__ == "__main__":  # pragma: no cover

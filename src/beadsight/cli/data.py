@@ -8,30 +8,37 @@ import json
 import zipfile
 from pathlib import Path
 
-import h5py
 
-from beadsight.checkpoint import checkpoint_summary
-from beadsight.data.dataset import import_reference, open_dataset
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("info", help="summarise a dataset or a checkpoint (ours or the reference's)")
-    p.add_argument("file", help="dataset .h5 file or checkpoint .pt file")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.set_defaults(func=_info)
-
-    p = sub.add_parser(
+def register(commands) -> None:
+    commands.add(
+        "info",
+        help="summarise a dataset or a checkpoint (ours or the reference's)",
+        arguments=_info_arguments,
+        run=_info,
+    )
+    commands.add(
         "import-reference",
         help="convert a reference processed HDF5 file to this project's format",
         description="Reference files are also accepted directly by train, evaluate and predict; "
         "importing stores RGB frames, newtons, float64 timestamps and press segmentation.",
+        arguments=_import_arguments,
+        run=_import,
     )
+
+
+def _info_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", help="dataset .h5 file or checkpoint .pt file")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def _import_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("source", help="reference .hdf5 file")
     p.add_argument("--out", required=True, help="output dataset .h5")
-    p.set_defaults(func=_import)
 
 
 def dataset_summary(path: str) -> dict:
+    from beadsight.data.dataset import open_dataset
+
     with open_dataset(path) as ds:
         contact = ds.force_n[ds.contact]
         return {
@@ -51,10 +58,15 @@ def dataset_summary(path: str) -> dict:
 
 
 def _info(args: argparse.Namespace) -> int:
+    import h5py
+
+    from beadsight.checkpoint import checkpoint_summary
+    from beadsight.errors import BeadSightError
+
     path = Path(args.file)
     if path.is_file() and not h5py.is_hdf5(path):
         if not zipfile.is_zipfile(path):
-            raise ValueError(
+            raise BeadSightError(
                 f"{path}: neither a dataset (an HDF5 file) nor a checkpoint (a torch zip archive)"
             )
         summary = checkpoint_summary(path)
@@ -69,6 +81,8 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
+    from beadsight.data.dataset import import_reference
+
     out = import_reference(args.source, args.out)
     print(f"wrote {out}")
     return 0

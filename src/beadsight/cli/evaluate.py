@@ -6,27 +6,41 @@ import argparse
 from pathlib import Path
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    from beadsight.evaluation.evaluate import DEFAULT_BATCH_SIZE, SPLIT_CHOICES
-    from beadsight.evaluation.predict import DEFAULT_BATCH_SIZE as PREDICT_BATCH_SIZE
-
-    p = subparsers.add_parser(
+def register(commands) -> None:
+    commands.add(
         "evaluate",
         help="metrics of a checkpoint on a dataset split, beside the paper's figures",
         description="Run a checkpoint over a dataset split; write metrics.json, predictions.h5 "
         "and PNG plots to --out and print the metrics beside the paper's.",
+        arguments=_evaluate_arguments,
+        run=run_evaluate,
     )
+    commands.add(
+        "predict",
+        help="pressure maps, force and centre of pressure for every frame of a recording",
+        description="Run a checkpoint over a dataset or a video file and write per-frame "
+        "pressure maps (kPa), total force (N), centre of pressure (mm) and timestamps to HDF5.",
+        arguments=_predict_arguments,
+        run=run_predict,
+    )
+
+
+def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.cli.options import with_default
+    from beadsight.evaluation import config
+
     p.add_argument("--checkpoint", required=True, type=Path, help="checkpoint file (.pt)")
     p.add_argument("--data", required=True, type=Path, help="dataset file (HDF5)")
     p.add_argument(
         "--split",
-        choices=SPLIT_CHOICES,
-        default="test",
-        help="presses to evaluate (test/val: the training run's split; default test)",
+        choices=config.SPLIT_CHOICES,
+        default=config.DEFAULT_SPLIT,
+        help=with_default(
+            "presses to evaluate (test/val: the training run's split)", config.DEFAULT_SPLIT
+        ),
     )
     p.add_argument("--out", required=True, type=Path, help="output folder")
-    p.add_argument("--batch-size", type=int, default=DEFAULT_BATCH_SIZE)
-    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, mps, ...")
+    _batch_and_device(p, config.EVALUATE_BATCH_SIZE)
     p.add_argument(
         "--max-frames",
         type=int,
@@ -46,27 +60,43 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(for checkpoints trained with --image-size)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run_evaluate)
 
-    p = subparsers.add_parser(
-        "predict",
-        help="pressure maps, force and centre of pressure for every frame of a recording",
-        description="Run a checkpoint over a dataset or a video file and write per-frame "
-        "pressure maps (kPa), total force (N), centre of pressure (mm) and timestamps to HDF5.",
-    )
+
+def _predict_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.cli.options import with_default
+    from beadsight.evaluation import config
+
     p.add_argument("--checkpoint", required=True, type=Path, help="checkpoint file (.pt)")
     p.add_argument("--input", required=True, type=Path, help="dataset (HDF5) or video file")
     p.add_argument("--out", required=True, type=Path, help="output file (.h5)")
     p.add_argument(
         "--preprocess",
-        default="auto",
-        help="auto (default), none, reference, reference-linear, or a fisheye "
-        "calibration .json (video input only)",
+        default=config.PREDICT_PREPROCESS,
+        help=with_default(
+            "auto, none, reference, reference-linear, or a fisheye calibration .json "
+            "(video input only)",
+            config.PREDICT_PREPROCESS,
+        ),
     )
-    p.add_argument("--batch-size", type=int, default=PREDICT_BATCH_SIZE)
-    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, mps, ...")
+    _batch_and_device(p, config.PREDICT_BATCH_SIZE)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run_predict)
+
+
+def _batch_and_device(p: argparse.ArgumentParser, batch_size: int) -> None:
+    from beadsight.cli.options import with_default
+    from beadsight.evaluation.config import DEFAULT_DEVICE
+
+    p.add_argument(
+        "--batch-size",
+        type=int,
+        default=batch_size,
+        help=with_default("frames per batch", batch_size),
+    )
+    p.add_argument(
+        "--device",
+        default=DEFAULT_DEVICE,
+        help=with_default("auto, cpu, cuda, cuda:1, mps, ...", DEFAULT_DEVICE),
+    )
 
 
 def run_evaluate(args: argparse.Namespace) -> int:

@@ -5,11 +5,58 @@ from __future__ import annotations
 import argparse
 import json
 
-from beadsight.inference.runtimes import BACKENDS, PRECISIONS
-from beadsight.inference.export import EXPORT_PRECISIONS, FORMATS
+
+def register(commands) -> None:
+    commands.add(
+        "export",
+        help="export a checkpoint to ONNX or OpenVINO (uint8 frames in, kPa out)",
+        description="Export a checkpoint with its normalisation and metadata; the file is "
+        "checked against torch and removed if it disagrees.",
+        arguments=_export_arguments,
+        run=_export,
+    )
+    commands.add("bench", help="performance measurements", arguments=_bench_arguments)
+
+
+def _export_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.inference.config import EXPORT_FORMATS, EXPORT_PRECISIONS
+
+    p.add_argument("--checkpoint", required=True, help="beadsight or reference checkpoint")
+    p.add_argument("--format", required=True, choices=EXPORT_FORMATS)
+    p.add_argument("--out", required=True, help=".onnx file, or OpenVINO .xml")
+    p.add_argument(
+        "--precision",
+        default=EXPORT_PRECISIONS[0],
+        choices=EXPORT_PRECISIONS,
+        help=f"(default: {EXPORT_PRECISIONS[0]})",
+    )
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+
+
+def _bench_arguments(bench: argparse.ArgumentParser) -> None:
+    sub = bench.add_subparsers(dest="bench_command", metavar="WHAT", required=True)
+    live = sub.add_parser(
+        "live",
+        help="live predictor rate, latency and error vs fp32 torch",
+        description="Feed simulated frames through PressurePredictor.update: max throughput "
+        "and sustained at --rate Hz. Without --checkpoint: a randomly initialised "
+        "reference-size model (width 16, 256 px, T=15).",
+    )
+    live.add_argument("--checkpoint", default=None)
+    _backend_args(live)
+    # None: not given, bench_live's defaults apply
+    live.add_argument("--frames", type=int, default=None, help="frames per run")
+    live.add_argument(
+        "--rate", type=float, default=None, help="camera rate of the sustained run, Hz (0: skip it)"
+    )
+    live.add_argument("--seed", type=int, default=None, help="seed of the simulated frames")
+    live.add_argument("--json", action="store_true", help="print one JSON object")
+    live.set_defaults(func=_bench_live)
 
 
 def _backend_args(p: argparse.ArgumentParser) -> None:
+    from beadsight.inference.config import BACKENDS, PRECISIONS
+
     p.add_argument(
         "--backend",
         default="auto",
@@ -32,40 +79,6 @@ def _backend_options(args: argparse.Namespace) -> dict:
     return {"cache_dir": cache, "threads": args.threads}
 
 
-def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "export",
-        help="export a checkpoint to ONNX or OpenVINO (uint8 frames in, kPa out)",
-        description="Export a checkpoint with its normalisation and metadata; the file is "
-        "checked against torch and removed if it disagrees.",
-    )
-    p.add_argument("--checkpoint", required=True, help="beadsight or reference checkpoint")
-    p.add_argument("--format", required=True, choices=FORMATS)
-    p.add_argument("--out", required=True, help=".onnx file, or OpenVINO .xml")
-    p.add_argument("--precision", default="fp32", choices=EXPORT_PRECISIONS)
-    p.add_argument("--json", action="store_true", help="print the report as JSON")
-    p.set_defaults(func=_export)
-
-    bench = subparsers.add_parser("bench", help="performance measurements")
-    sub = bench.add_subparsers(dest="bench_command", metavar="WHAT", required=True)
-    live = sub.add_parser(
-        "live",
-        help="live predictor rate, latency and error vs fp32 torch",
-        description="Feed simulated frames through PressurePredictor.update: max throughput "
-        "and sustained at --rate Hz. Without --checkpoint: a randomly initialised "
-        "reference-size model (width 16, 256 px, T=15).",
-    )
-    live.add_argument("--checkpoint", default=None)
-    _backend_args(live)
-    live.add_argument("--frames", type=int, default=600, help="frames per run (default 600)")
-    live.add_argument(
-        "--rate", type=float, default=30.0, help="camera rate of the sustained run, Hz (0: skip)"
-    )
-    live.add_argument("--seed", type=int, default=0)
-    live.add_argument("--json", action="store_true", help="print one JSON object")
-    live.set_defaults(func=_bench_live)
-
-
 def _export(args: argparse.Namespace) -> int:
     from beadsight.inference.export import export_model
 
@@ -83,18 +96,20 @@ def _export(args: argparse.Namespace) -> int:
 
 def _bench_live(args: argparse.Namespace) -> int:
     from beadsight.checkpoint import load_checkpoint
+    from beadsight.cli.options import given
     from beadsight.live.bench import bench_live
 
     model = load_checkpoint(args.checkpoint) if args.checkpoint else None
+    options = given(frames=args.frames, rate_hz=args.rate, seed=args.seed)
+    if options.get("rate_hz") == 0:
+        options["rate_hz"] = None  # 0: no sustained run
     result = bench_live(
         model,
         backend=args.backend,
         precision=args.precision,
-        frames=args.frames,
-        rate_hz=args.rate or None,
         device=args.device,
         backend_options=_backend_options(args),
-        seed=args.seed,
+        **options,
     )
     print(json.dumps(result.to_dict()) if args.json else result.summary())
     return 0

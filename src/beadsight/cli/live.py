@@ -6,36 +6,50 @@ import argparse
 from pathlib import Path
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    from beadsight.live.stream import DEFAULT_PORT as STREAM_PORT
-    from beadsight.live.viewer.server import DEFAULT_MAX_FPS, DEFAULT_MAX_KPA
-    from beadsight.live.viewer.server import DEFAULT_PORT as VIEWER_PORT
-
-    p = subparsers.add_parser(
+def register(commands) -> None:
+    commands.add(
         "live",
         help="pressure readings from a camera, video or the simulator, with a web viewer",
         description="Run a checkpoint on frames from a camera, a video file or the simulator "
         "at the camera rate. Serves a web viewer (camera, kPa map, force trace, rate and "
         "latency, record button) and a TCP stream of readings for robot programs "
         "(docs/live.md); --output records readings to HDF5 or MCAP.",
+        arguments=_live_arguments,
+        run=run_live_command,
     )
+    commands.add(
+        "to-mcap",
+        help="convert a readings file (beadsight live --output x.h5) to MCAP with ROS 2 types",
+        description="Pressure maps as sensor_msgs/msg/Image (32FC1, kPa), total force as "
+        "geometry_msgs/msg/WrenchStamped (force.z, N), centre of pressure as "
+        "geometry_msgs/msg/PointStamped (m, frame 'beadsight'); stamps = capture times.",
+        arguments=_to_mcap_arguments,
+        run=run_to_mcap,
+    )
+
+
+def _to_mcap_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("readings", type=Path, help="readings file (.h5)")
+    p.add_argument("--out", required=True, type=Path, help="output .mcap file")
+
+
+def _live_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.inference.config import BACKENDS, PRECISIONS
+
     p.add_argument(
         "--checkpoint",
         type=Path,
         default=None,
         help="checkpoint file (.pt); default: the shipped sim model",
     )
-    p.add_argument(
-        "--source",
-        default="sim",
-        help="camera index (0, 1, ...), video file, or 'sim' (default)",
-    )
+    # LiveSensor / run_live settings: None = not given, the library's default applies
+    p.add_argument("--source", default=None, help="camera index (0, 1, ...), video file, or sim")
     p.add_argument(
         "--backend",
-        default="auto",
-        help="auto (default), torch, compile, onnx, openvino, cuda",
+        default=None,
+        help=f"auto (the fastest that agrees with fp32 torch), {', '.join(BACKENDS)}",
     )
-    p.add_argument("--precision", default="auto", help="auto (default), fp32, bf16")
+    p.add_argument("--precision", default=None, help=f"auto, {', '.join(PRECISIONS)}")
     p.add_argument(
         "--preprocess",
         default=None,
@@ -47,11 +61,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--fps",
         type=float,
         default=None,
-        help="simulator rate (default 30) or rate asked of a camera; videos play at their own rate",
+        help="simulator rate (default: its camera rate) or rate asked of a camera; videos play at their own rate",
     )
     p.add_argument("--loop", action="store_true", help="restart a video file at its end")
-    p.add_argument("--seed", type=int, default=0, help="simulator seed")
-    p.add_argument("--host", default="127.0.0.1", help="address of the viewer and stream")
+    p.add_argument("--seed", type=int, default=None, help="simulator seed")
+    _output_arguments(p)
+    p.add_argument(
+        "--output",
+        type=Path,
+        default=None,
+        help="record every reading to this file (.h5 readings file or .mcap)",
+    )
+    p.add_argument("--frames", type=int, default=None, help="stop sensing after N readings")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    p.add_argument(
+        "--report-every", type=float, default=None, help="seconds between rate/latency lines"
+    )
+
+
+def _output_arguments(p: argparse.ArgumentParser) -> None:
+    """Where the readings go: the web viewer and the TCP stream."""
+    from beadsight.live.stream import DEFAULT_PORT as STREAM_PORT
+    from beadsight.live.viewer.server import DEFAULT_HOST, DEFAULT_MAX_FPS, DEFAULT_MAX_KPA
+    from beadsight.live.viewer.server import DEFAULT_PORT as VIEWER_PORT
+
+    p.add_argument(
+        "--host", default=DEFAULT_HOST, help=f"address of the viewer and stream ({DEFAULT_HOST})"
+    )
     p.add_argument(
         "--port",
         type=int,
@@ -84,47 +120,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help=f"TCP port of the readings stream (default {STREAM_PORT}; 0 = any)",
     )
     p.add_argument("--no-stream", action="store_true", help="no TCP readings stream")
-    p.add_argument(
-        "--output",
-        type=Path,
-        default=None,
-        help="record every reading to this file (.h5 readings file or .mcap)",
-    )
-    p.add_argument("--frames", type=int, default=None, help="stop sensing after N readings")
-    p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
-    p.add_argument(
-        "--report-every",
-        type=float,
-        default=5.0,
-        help="seconds between rate/latency lines (default 5)",
-    )
-    p.set_defaults(func=run_live_command)
-
-    p = subparsers.add_parser(
-        "to-mcap",
-        help="convert a readings file (beadsight live --output x.h5) to MCAP with ROS 2 types",
-        description="Pressure maps as sensor_msgs/msg/Image (32FC1, kPa), total force as "
-        "geometry_msgs/msg/WrenchStamped (force.z, N), centre of pressure as "
-        "geometry_msgs/msg/PointStamped (m, frame 'beadsight'); stamps = capture times.",
-    )
-    p.add_argument("readings", type=Path, help="readings file (.h5)")
-    p.add_argument("--out", required=True, type=Path, help="output .mcap file")
-    p.set_defaults(func=run_to_mcap)
 
 
 def run_live_command(args: argparse.Namespace) -> int:
+    from beadsight.cli.options import given
     from beadsight.live.sensor import LiveSensor, run_live
 
     sensor = LiveSensor(
         args.checkpoint,
-        source=args.source,
-        backend=args.backend,
-        precision=args.precision,
         preprocess=args.preprocess,
         fps=args.fps,
         loop=args.loop,
-        seed=args.seed,
         max_readings=args.frames,
+        **given(source=args.source, backend=args.backend, precision=args.precision, seed=args.seed),
     )
     run_live(
         sensor,
@@ -139,7 +147,7 @@ def run_live_command(args: argparse.Namespace) -> int:
         stream_port=None if args.no_stream else args.stream_port,
         output=args.output,
         duration_s=args.duration,
-        report_every_s=args.report_every,
+        **given(report_every_s=args.report_every),
         echo=lambda line: print(line, flush=True),
     )
     return 0

@@ -1,109 +1,177 @@
-"""``beadsight collect`` and ``beadsight process``: the calibration rig's commands."""
+"""``beadsight collect`` and ``beadsight process``: the calibration rig's commands.
+
+Options and their defaults come from the dataclasses the commands build:
+:class:`~beadsight.rig.config.DeviceSpec`, :class:`~beadsight.rig.config.VirtualRigSpec`,
+:class:`~beadsight.rig.plan.PressPlan` and :class:`~beadsight.data.process.ProcessConfig`.
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from beadsight.rig.config import CAMERA_MODES, SCALE_PROTOCOLS  # light: no numpy
+
 EXIT_CODES = {"complete": 0, "interrupted": 130}  # any other status: 1
 
+DEVICE_FLAGS = (
+    ("printer_baud", "printer serial baud rate"),
+    ("scale_baud", "scale serial baud rate"),
+    ("scale_protocol", "scale line format", {"choices": SCALE_PROTOCOLS}),
+    ("camera_fps", "camera frame rate asked for"),
+)
+PLAN_FLAGS = (  # None unless given: a --plan file's values, else PressPlan's, apply
+    ("presses", "data presses"),
+    ("pattern", "press locations: random or grid"),
+    ("seed", "plan seed (locations and depths)"),
+    ("calibration_presses", "centre presses first"),
+)
+VIRTUAL_FLAGS = (
+    ("time_scale", "simulated seconds per real second"),
+    (
+        "camera_mode",
+        "raw 1280x1024 fisheye frames, or sensor-space frames (fast)",
+        {"flag": "--virtual-camera", "choices": CAMERA_MODES},
+    ),
+    (
+        "image_size_px",
+        "sensor-space frame size for --virtual-camera sensor",
+        {"flag": "--image-size"},
+    ),
+    ("seed", "seed of the simulated pouch", {"flag": "--sim-seed", "dest": "sim_seed"}),
+)
+PROCESS_FLAGS = (
+    (
+        "preprocess",
+        "'reference' (fisheye unwarp as published), 'none', or a fisheye calibration .json",
+    ),
+    ("image_size", "output image side, px"),
+    (
+        "interpolation",
+        "unwarp sampling: bilinear, or the reference's truncating nearest neighbour "
+        "(bit-compatible, slower)",
+        {"choices": ("linear", "reference")},
+    ),
+    (
+        "resize",
+        "downscaling: supersample (antialiased, fast), area (cv2.INTER_AREA), linear "
+        "(no antialiasing)",
+        {"choices": ("supersample", "area", "linear")},
+    ),
+    (
+        "force_interpolation",
+        "force at frame times (cubic = the reference's spline)",
+        {"choices": ("pchip", "cubic", "linear")},
+    ),
+    (
+        "max_force_gap_s",
+        "frames in a longer gap between scale readings are invalid",
+        {"flag": "--max-force-gap", "metavar": "S"},
+    ),
+    (
+        "camera_delay_s",
+        "camera latency subtracted from frame timestamps",
+        {"flag": "--camera-delay", "metavar": "S"},
+    ),
+    ("decode_scale", "JPEG decode reduction; 0 = automatic", {"choices": (0, 1, 2, 4, 8)}),
+    ("workers", "threads (0 = one per core)"),
+    ("compression", "HDF5 compression of the frames", {"choices": ("gzip", "lzf"), "type": str}),
+)
 
-def register(sub: argparse._SubParsersAction) -> None:
-    _register_collect(sub)
-    _register_process(sub)
 
-
-# --- collect ---------------------------------------------------------------------------------
-def _register_collect(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+def register(commands) -> None:
+    commands.add(
         "collect",
         help="press the finger onto the sensor following a plan and record everything",
         description="Run a press plan on the rig (real devices, or --virtual for the simulated "
         "rig) and record video, scale readings and printer commands into a raw recording "
         "folder. Ctrl-C stops cleanly (finger lifted, files closed); --resume continues.",
+        arguments=_collect_arguments,
+        run=_collect,
     )
+    commands.add(
+        "process",
+        help="turn a raw recording (this project's or the reference's) into a dataset",
+        description="Align frames with the force and printer logs, preprocess the images and "
+        "write an HDF5 dataset plus a QA summary (<out>.qa.json, <out>.qa.png).",
+        arguments=_process_arguments,
+        run=_process,
+    )
+
+
+# --- collect ---------------------------------------------------------------------------------
+def _collect_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.cli.options import add_fields, field_default, with_default
+    from beadsight.rig.config import (
+        FORCE_LIMIT_N,
+        ON_FORCE_LIMIT,
+        SCALE_TIMEOUT_S,
+        DeviceSpec,
+        VirtualRigSpec,
+    )
+    from beadsight.rig.plan import PressPlan
+
     p.add_argument("--out", type=Path, required=True, help="raw recording folder to create")
     src = p.add_argument_group("devices")
     src.add_argument("--virtual", action="store_true", help="use the simulated rig")
     src.add_argument("--printer", metavar="PORT", help="printer serial port (/dev/ttyUSB0)")
     src.add_argument("--scale", metavar="PORT", help="scale serial port (/dev/ttyACM0)")
     src.add_argument("--camera", metavar="INDEX_OR_PATH", help="camera index or video file")
-    src.add_argument("--printer-baud", type=int, default=115200)
-    src.add_argument("--scale-baud", type=int, default=57600)
-    src.add_argument("--scale-protocol", choices=("auto", "beadsight", "reference"), default="auto")
+    add_fields(src, DeviceSpec, DEVICE_FLAGS)
+    size = (field_default(DeviceSpec, "camera_width"), field_default(DeviceSpec, "camera_height"))
     src.add_argument(
-        "--camera-size", type=int, nargs=2, default=(1280, 1024), metavar=("WIDTH", "HEIGHT")
+        "--camera-size",
+        type=int,
+        nargs=2,
+        default=size,
+        metavar=("WIDTH", "HEIGHT"),
+        help=with_default("camera frame size asked for", size),
     )
-    src.add_argument("--camera-fps", type=float, default=30.0)
     plan = p.add_argument_group("press plan (defaults: the reference pattern)")
     plan.add_argument("--plan", type=Path, help="TOML file with PressPlan fields")
-    plan.add_argument("--presses", type=int, help="data presses (default 500)")
-    plan.add_argument("--pattern", choices=("random", "grid"))
-    plan.add_argument("--seed", type=int, help="plan seed (locations and depths)")
-    plan.add_argument("--calibration-presses", type=int, help="centre presses first (default 3)")
+    add_fields(plan, PressPlan, PLAN_FLAGS, override=True)
     safety = p.add_argument_group("safety and session")
     safety.add_argument(
         "--force-limit",
         type=float,
-        default=40.0,
+        default=FORCE_LIMIT_N,
         metavar="N",
-        help="abort a press above this force, newtons (default 40)",
+        help=with_default("abort a press above this force, newtons", FORCE_LIMIT_N),
     )
     safety.add_argument(
         "--on-force-limit",
-        choices=("stop", "skip"),
-        default="stop",
-        help="after an aborted press: stop the session or go on",
+        choices=ON_FORCE_LIMIT,
+        default=ON_FORCE_LIMIT[0],
+        help=with_default("after an aborted press: stop the session or go on", ON_FORCE_LIMIT[0]),
     )
     safety.add_argument(
         "--scale-timeout",
         type=float,
-        default=2.0,
+        default=SCALE_TIMEOUT_S,
         metavar="S",
-        help="stop (finger lifted) when the scale is silent this long (default 2)",
+        help=with_default(
+            "stop (finger lifted) when the scale is silent this long", SCALE_TIMEOUT_S
+        ),
     )
     safety.add_argument(
         "--resume", action="store_true", help="continue the session in --out with its saved plan"
     )
     safety.add_argument("--chunk-frames", type=int, help="frames per video chunk (default: fps)")
     safety.add_argument("--no-progress", action="store_true")
-    virt = p.add_argument_group("virtual rig (--virtual)")
-    virt.add_argument(
-        "--time-scale", type=float, default=1.0, help="simulated seconds per real second"
-    )
-    virt.add_argument(
-        "--virtual-camera",
-        choices=("raw", "sensor"),
-        default="raw",
-        help="raw 1280x1024 fisheye frames, or sensor-space frames (fast)",
-    )
-    virt.add_argument(
-        "--image-size",
-        type=int,
-        default=256,
-        help="sensor-space frame size for --virtual-camera sensor",
-    )
-    virt.add_argument("--sim-seed", type=int, default=0, help="seed of the simulated pouch")
-    p.set_defaults(func=_collect)
+    add_fields(p.add_argument_group("virtual rig (--virtual)"), VirtualRigSpec, VIRTUAL_FLAGS)
 
 
 def _collect(args: argparse.Namespace) -> int:
+    from beadsight.errors import BeadSightError
     from beadsight.rig.collect import (
-        DeviceSpec,
-        PressPlan,
-        VirtualRigSpec,
         collect_with_hardware,
         collect_with_virtual_rig,
         simulator_config,
     )
-    from beadsight.errors import BeadSightError
+    from beadsight.rig.config import DeviceSpec, VirtualRigSpec
+    from beadsight.rig.plan import PressPlan
 
-    overrides = {
-        "presses": args.presses,
-        "pattern": args.pattern,
-        "seed": args.seed,
-        "calibration_presses": args.calibration_presses,
-    }
+    overrides = {name: getattr(args, name) for name, *_ in PLAN_FLAGS}
     options = {
         "resume": args.resume,
         "force_limit_n": args.force_limit,
@@ -119,8 +187,8 @@ def _collect(args: argparse.Namespace) -> int:
             )
         rig = VirtualRigSpec(
             time_scale=args.time_scale,
-            camera_mode=args.virtual_camera,
-            image_size_px=args.image_size,
+            camera_mode=args.camera_mode,
+            image_size_px=args.image_size_px,
             seed=args.sim_seed,
         )
         plan = (
@@ -160,84 +228,21 @@ def _collect(args: argparse.Namespace) -> int:
 
 
 # --- process ---------------------------------------------------------------------------------
-def _register_process(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "process",
-        help="turn a raw recording (this project's or the reference's) into a dataset",
-        description="Align frames with the force and printer logs, preprocess the images and "
-        "write an HDF5 dataset plus a QA summary (<out>.qa.json, <out>.qa.png).",
-    )
+def _process_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.cli.options import add_fields
+    from beadsight.data.process import ProcessConfig
+
     p.add_argument("raw", type=Path, help="raw recording folder")
     p.add_argument("--out", type=Path, required=True, help="dataset file to write (.h5)")
-    p.add_argument(
-        "--preprocess",
-        default="reference",
-        help="'reference' (fisheye unwarp as published), 'none', or a fisheye "
-        "calibration .json (default: reference)",
-    )
-    p.add_argument("--image-size", type=int, default=256, help="output image side, px")
-    p.add_argument(
-        "--interpolation",
-        choices=("linear", "reference"),
-        default="linear",
-        help="unwarp sampling: bilinear, or the reference's truncating nearest "
-        "neighbour (bit-compatible, slower)",
-    )
-    p.add_argument(
-        "--resize",
-        choices=("supersample", "area", "linear"),
-        default="supersample",
-        help="downscaling: supersample (antialiased, fast), area (cv2.INTER_AREA), "
-        "linear (no antialiasing)",
-    )
-    p.add_argument(
-        "--force-interpolation",
-        choices=("pchip", "cubic", "linear"),
-        default="pchip",
-        help="force at frame times (cubic = the reference's spline)",
-    )
-    p.add_argument(
-        "--max-force-gap",
-        type=float,
-        default=0.5,
-        metavar="S",
-        help="frames in a longer gap between scale readings are invalid",
-    )
-    p.add_argument(
-        "--camera-delay",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="camera latency subtracted from frame timestamps",
-    )
-    p.add_argument(
-        "--decode-scale",
-        type=int,
-        choices=(0, 1, 2, 4, 8),
-        default=0,
-        help="JPEG decode reduction; 0 = automatic",
-    )
-    p.add_argument("--workers", type=int, default=0, help="threads (0 = one per core)")
-    p.add_argument("--compression", choices=("gzip", "lzf"), default=None)
+    add_fields(p, ProcessConfig, PROCESS_FLAGS)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_process)
 
 
 def _process(args: argparse.Namespace) -> int:
+    from beadsight.cli.options import field_values
     from beadsight.data.process import ProcessConfig, process_recording, qa_paths
 
-    config = ProcessConfig(
-        image_size=args.image_size,
-        preprocess=args.preprocess,
-        interpolation=args.interpolation,
-        resize=args.resize,
-        force_interpolation=args.force_interpolation,
-        max_force_gap_s=args.max_force_gap,
-        camera_delay_s=args.camera_delay,
-        decode_scale=args.decode_scale,
-        workers=args.workers,
-        compression=args.compression,
-    )
+    config = ProcessConfig(**field_values(args, ProcessConfig))
     qa = process_recording(args.raw, args.out, config, progress=not args.no_progress)
     json_path, png_path = qa_paths(args.out)
     invalid = ", ".join(f"{k} {v}" for k, v in qa["invalid_frames"].items()) or "none"

@@ -5,29 +5,66 @@ from __future__ import annotations
 import argparse
 import os
 
-from beadsight.train.config import TrainConfig
+# TrainConfig fields offered as flags. Their defaults stay None ("not given") so that
+# only flags the user gives override the TOML file / the resumed run's config; the
+# help shows TrainConfig's default.
+TRAIN_FLAGS = (
+    ("steps", "optimizer steps in total (default: --epochs passes)", {"type": int}),
+    ("epochs", "passes over the training windows"),
+    ("batch_size", "windows per step over all processes"),
+    ("lr", "AdamW learning rate"),
+    ("lr_schedule", "constant, or cosine: decay from --lr to --lr-min over the run's steps"),
+    ("lr_min", "final learning rate of the cosine schedule"),
+    (
+        "init",
+        "start from this checkpoint's weights and normalisation (fine-tuning); window, "
+        "frame stride, width and up-kernel default to the checkpoint's",
+        {"metavar": "CHECKPOINT"},
+    ),
+    ("weight_decay", "AdamW weight decay"),
+    ("dropout", "dropout in the U-Net conv blocks"),
+    ("width", "U-Net width (channels of the first block)"),
+    ("window", "frames the network sees per prediction"),
+    ("frame_stride", "those frames are this many camera frames apart (1: consecutive)"),
+    ("up_kernel", "U-Net up-conv kernel, 1 (reference) or 3", {"choices": (1, 3)}),
+    (
+        "image_size",
+        "train at this size in px, a multiple of 8; frames are resized with INTER_AREA "
+        "(default: the dataset's size)",
+        {"type": int},
+    ),
+    ("device", "auto, cpu, cuda or cuda:N"),
+    ("precision", "fp32, bf16 (autocast) or fp16 (CUDA only)"),
+    ("seed", "seed of split, init, batch order and augmentation"),
+    ("noise_std", "Gaussian noise on the normalised input frames"),
+    ("split", "fractions of presses per split", {"nargs": 3, "metavar": ("TRAIN", "VAL", "TEST")}),
+    ("loader", "auto, host (DataLoader workers) or device (frames on the device)"),
+    ("num_workers", "DataLoader workers in host loader mode"),
+    ("threads", "torch CPU threads (default: torch's choice)", {"type": int}),
+    ("log_every_steps", "a metrics.jsonl line every N steps"),
+    ("checkpoint_every_steps", "save last.pt every N steps"),
+    ("checkpoint_every_min", "save last.pt at least every M minutes"),
+    ("val_stride", "validate on every N-th validation window"),
+    ("progress", "no progress bars"),
+)
 
-# CLI flag -> TrainConfig field, with argparse options. Defaults stay None so that
-# only flags the user gives override the TOML file / the resumed run's config.
-_DEFAULTS = {
-    f: TrainConfig.__dataclass_fields__[f].default for f in TrainConfig.__dataclass_fields__
-}
 
-
-def _flag(p: argparse.ArgumentParser, name: str, help: str, **kwargs) -> None:
-    default = _DEFAULTS.get(name.replace("-", "_"))
-    suffix = "" if default is None else f" (default: {default})"
-    p.add_argument(f"--{name}", default=None, help=help + suffix, **kwargs)
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+def register(commands) -> None:
+    commands.add(
         "train",
         help="train a pressure model on a dataset",
         description="Train the BeadSight U-Net (reference recipe by default) into a run folder "
         "with config.json, split.json, metrics.jsonl, last.pt and best.pt. Settings: code "
         "defaults < --config FILE.toml < flags. Under torchrun it trains data-parallel.",
+        arguments=_arguments,
+        run=_train,
     )
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.cli.options import add_fields
+    from beadsight.train.config import LOADER_MODES, LR_SCHEDULES, PRECISIONS, TrainConfig
+
     p.add_argument("--data", default=None, help="dataset .h5 (ours or a reference HDF5 file)")
     p.add_argument("--out", default=None, help="run folder to create (or to resume)")
     p.add_argument(
@@ -42,87 +79,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="continue the run in --out from its last.pt (same split, optimizer, step)",
     )
-    _flag(p, "steps", "optimizer steps in total (default: --epochs passes)", type=int)
-    _flag(p, "epochs", "passes over the training windows", type=int)
-    _flag(p, "batch-size", "windows per step over all processes", type=int)
-    _flag(p, "lr", "AdamW learning rate", type=float)
-    _flag(
-        p,
-        "lr-schedule",
-        "constant, or cosine: decay from --lr to --lr-min over the run's steps",
-        choices=("constant", "cosine"),
-    )
-    _flag(p, "lr-min", "final learning rate of the cosine schedule", type=float)
-    _flag(
-        p,
-        "init",
-        "start from this checkpoint's weights and normalisation (fine-tuning); window, "
-        "frame stride, width and up-kernel default to the checkpoint's",
-        metavar="CHECKPOINT",
-    )
-    _flag(p, "weight-decay", "AdamW weight decay", type=float)
-    _flag(p, "dropout", "dropout in the U-Net conv blocks", type=float)
-    _flag(p, "width", "U-Net width (channels of the first block)", type=int)
-    _flag(p, "window", "frames the network sees per prediction", type=int)
-    _flag(
-        p,
-        "frame-stride",
-        "those frames are this many camera frames apart (1: consecutive, the reference)",
-        type=int,
-    )
-    _flag(p, "up-kernel", "U-Net up-conv kernel, 1 (reference) or 3", type=int, choices=(1, 3))
-    _flag(
-        p,
-        "image-size",
-        "train at this size in px, a multiple of 8; frames are resized with INTER_AREA (default: the dataset's size)",
-        type=int,
-    )
-    _flag(p, "device", "auto, cpu, cuda or cuda:N")
-    _flag(
-        p,
-        "precision",
-        "fp32, bf16 (autocast) or fp16 (CUDA only)",
-        choices=("fp32", "bf16", "fp16"),
-    )
-    _flag(p, "seed", "seed of split, init, batch order and augmentation", type=int)
-    _flag(p, "noise-std", "Gaussian noise on the normalised input frames", type=float)
-    p.add_argument(
-        "--split",
-        type=float,
-        nargs=3,
-        default=None,
-        metavar=("TRAIN", "VAL", "TEST"),
-        help="fractions of presses per split (default: 0.7 0.1 0.2)",
-    )
-    _flag(
-        p,
-        "loader",
-        "auto, host (DataLoader workers) or device (frames on the device)",
-        choices=("auto", "host", "device"),
-    )
-    _flag(p, "num-workers", "DataLoader workers in host loader mode", type=int)
-    _flag(p, "threads", "torch CPU threads (default: torch's choice)", type=int)
-    _flag(p, "log-every-steps", "a metrics.jsonl line every N steps", type=int)
-    _flag(p, "checkpoint-every-steps", "save last.pt every N steps", type=int)
-    _flag(p, "checkpoint-every-min", "save last.pt at least every M minutes", type=float)
-    _flag(p, "val-stride", "validate on every N-th validation window", type=int)
-    p.add_argument(
-        "--no-progress",
-        dest="progress",
-        action="store_false",
-        default=None,
-        help="no progress bars",
-    )
-    p.set_defaults(func=_train)
+    choices = {"lr_schedule": LR_SCHEDULES, "precision": PRECISIONS, "loader": LOADER_MODES}
+    rows = [
+        (name, help, {**(extra[0] if extra else {}), **_choices(choices, name)})
+        for name, help, *extra in TRAIN_FLAGS
+    ]
+    add_fields(p, TrainConfig, rows, override=True)
+
+
+def _choices(choices: dict, name: str) -> dict:
+    return {"choices": choices[name]} if name in choices else {}
 
 
 def _train(args: argparse.Namespace) -> int:
-    from beadsight.train.config import resolve_train_config
+    from beadsight.cli.options import field_values
+    from beadsight.train.config import TrainConfig, resolve_train_config
     from beadsight.train.trainer import train
 
-    names = set(TrainConfig.__dataclass_fields__)
-    overrides = {k: v for k, v in vars(args).items() if k in names}
-    config = resolve_train_config(overrides, args.config)
+    config = resolve_train_config(field_values(args, TrainConfig), args.config)
     run = train(config)
     if os.environ.get("RANK", "0") != "0":  # under torchrun, rank 0 reports
         return 0

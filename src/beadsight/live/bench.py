@@ -29,11 +29,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from beadsight.inference.runtimes import check_parity, probe_windows
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
+from beadsight.errors import ConfigError
 from beadsight.geometry import disk_pressure_kpa
 from beadsight.inference.predictor import PressurePredictor
+from beadsight.inference.runtimes import check_parity, probe_windows
 
 log = logging.getLogger(__name__)
 
@@ -269,7 +270,7 @@ def bench_live(
     """
     model = model if model is not None else random_model(seed=seed)
     if frames < model.window + 1:
-        raise ValueError(f"frames must be > the window ({model.window}), got {frames}")
+        raise ConfigError(f"frames must be > the window ({model.window}), got {frames}")
     if source_frames is None:
         count = min(frames, DEFAULT_SOURCE_FRAMES)
         source_frames, source = simulated_frames(model.image_size, count, seed)

@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from beadsight import __version__
 from beadsight.config import SensorGeometry
-from beadsight.errors import BeadSightError
+from beadsight.errors import BeadSightError, ConfigError
 from beadsight.live.readings import ReadingLike, open_readings
 
 logger = logging.getLogger(__name__)
@@ -253,7 +253,7 @@ def export_mcap(readings_path: str | Path, out_path: str | Path, progress: bool 
     """Convert a readings HDF5 file (``beadsight live --output x.h5``) to MCAP. Returns out_path."""
     readings_path, out_path = Path(readings_path), Path(out_path)
     if readings_path.resolve() == out_path.resolve():
-        raise ValueError(f"{out_path}: the MCAP output would overwrite its input")
+        raise ConfigError(f"{out_path}: the MCAP output would overwrite its input")
     with open_readings(readings_path) as rf:
         provenance = {**rf.provenance, "converted_from": str(readings_path)}
         with McapReadingsWriter(out_path, rf.geometry, provenance) as writer:

@@ -41,7 +41,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from beadsight.checkpoint import PressureModel, load_checkpoint, shipped_model_path
-from beadsight.errors import BeadSightError
+from beadsight.errors import BeadSightError, ConfigError
+from beadsight.inference.predictor import PressurePredictor, Reading
 from beadsight.live.sources import (
     FrameSource,
     SourceDisconnected,
@@ -50,7 +51,6 @@ from beadsight.live.sources import (
     frame_converter,
     open_source,
 )
-from beadsight.inference.predictor import PressurePredictor, Reading
 
 logger = logging.getLogger(__name__)
 
@@ -334,7 +334,7 @@ def open_recording_writer(path: str | Path, geometry, provenance: dict[str, Any]
         from beadsight.live.mcap import McapReadingsWriter
 
         return McapReadingsWriter(path, geometry, provenance)
-    raise ValueError(f"{path}: recording format unknown; use a .h5 or .mcap file name")
+    raise ConfigError(f"{path}: recording format unknown; use a .h5 or .mcap file name")
 
 
 # --- the sensor ------------------------------------------------------------------------
@@ -381,7 +381,7 @@ class LiveSensor:
         max_readings: int | None = None,
     ):
         if max_readings is not None and max_readings < 1:
-            raise ValueError(f"max_readings must be >= 1, got {max_readings}")
+            raise ConfigError(f"max_readings must be >= 1, got {max_readings}")
         self.max_readings = max_readings
         self._checkpoint = checkpoint if checkpoint is not None else shipped_model_path()
         self._source_spec = source

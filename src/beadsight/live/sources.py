@@ -29,7 +29,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from beadsight.errors import BeadSightError
+from beadsight.errors import BeadSightError, ConfigError
 
 logger = logging.getLogger(__name__)
 
@@ -123,7 +123,7 @@ class PacedSource(FrameSource):
         loop: bool = False,
     ):
         if not fps > 0:
-            raise ValueError(f"{name}: fps must be > 0, got {fps}")
+            raise ConfigError(f"{name}: fps must be > 0, got {fps}")
         self.name = name
         self.fps = float(fps)
         self.channel_order = channel_order

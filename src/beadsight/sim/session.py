@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from beadsight.config import REFERENCE_G_TO_N
+from beadsight.errors import ConfigError
 from beadsight.sim.config import SimConfig
 from beadsight.sim.press import Press, PressCycle
 from beadsight.sim.scale import SimulatedScale
@@ -94,7 +95,7 @@ class SimulatedSession:
         if presses_per_pouch is not None and (
             isinstance(presses_per_pouch, bool) or int(presses_per_pouch) < 1
         ):
-            raise ValueError(f"presses_per_pouch must be >= 1 or None, got {presses_per_pouch!r}")
+            raise ConfigError(f"presses_per_pouch must be >= 1 or None, got {presses_per_pouch!r}")
         self.presses_per_pouch = presses_per_pouch
         self.pouch_index = 0
         self.scale = SimulatedScale(self.config, scale_seq)
@@ -106,7 +107,7 @@ class SimulatedSession:
             self.presses: list[Press] | None = None
         elif isinstance(presses, (int, np.integer)):
             if presses < 0:
-                raise ValueError(f"presses must be >= 0, got {presses}")
+                raise ConfigError(f"presses must be >= 0, got {presses}")
             self.presses = [self._draw_press() for _ in range(int(presses))]
         else:
             self.presses = list(presses)

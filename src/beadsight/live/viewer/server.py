@@ -42,7 +42,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from beadsight.errors import BeadSightError
+from beadsight.errors import BeadSightError, ConfigError
 from beadsight.geometry import mm_to_px
 
 logger = logging.getLogger(__name__)
@@ -134,9 +134,9 @@ class ViewerServer:
         record_dir: str | Path = ".",
     ):
         if not max_fps > 0:
-            raise ValueError(f"max_fps must be > 0, got {max_fps}")
+            raise ConfigError(f"max_fps must be > 0, got {max_fps}")
         if not max_kpa > 0:
-            raise ValueError(f"max_kpa must be > 0, got {max_kpa}")
+            raise ConfigError(f"max_kpa must be > 0, got {max_kpa}")
         self.sensor = sensor
         self.geometry = sensor.geometry
         self.max_fps = float(max_fps)
