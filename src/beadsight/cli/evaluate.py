@@ -26,18 +26,17 @@ def register(commands) -> None:
 
 
 def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
-    from beadsight.cli.options import with_default
+    from beadsight.cli.options import add_option
     from beadsight.evaluation import config
 
     p.add_argument("--checkpoint", required=True, type=Path, help="checkpoint file (.pt)")
     p.add_argument("--data", required=True, type=Path, help="dataset file (HDF5)")
-    p.add_argument(
+    add_option(
+        p,
         "--split",
+        config.DEFAULT_SPLIT,
+        "presses to evaluate (test/val: the training run's split)",
         choices=config.SPLIT_CHOICES,
-        default=config.DEFAULT_SPLIT,
-        help=with_default(
-            "presses to evaluate (test/val: the training run's split)", config.DEFAULT_SPLIT
-        ),
     )
     p.add_argument("--out", required=True, type=Path, help="output folder")
     _batch_and_device(p, config.EVALUATE_BATCH_SIZE)
@@ -63,40 +62,29 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _predict_arguments(p: argparse.ArgumentParser) -> None:
-    from beadsight.cli.options import with_default
+    from beadsight.cli.options import add_option
     from beadsight.evaluation import config
 
     p.add_argument("--checkpoint", required=True, type=Path, help="checkpoint file (.pt)")
     p.add_argument("--input", required=True, type=Path, help="dataset (HDF5) or video file")
     p.add_argument("--out", required=True, type=Path, help="output file (.h5)")
-    p.add_argument(
+    add_option(
+        p,
         "--preprocess",
-        default=config.PREDICT_PREPROCESS,
-        help=with_default(
-            "auto, none, reference, reference-linear, or a fisheye calibration .json "
-            "(video input only)",
-            config.PREDICT_PREPROCESS,
-        ),
+        config.PREDICT_PREPROCESS,
+        "auto, none, reference, reference-linear, or a fisheye calibration .json "
+        "(video input only)",
     )
     _batch_and_device(p, config.PREDICT_BATCH_SIZE)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _batch_and_device(p: argparse.ArgumentParser, batch_size: int) -> None:
-    from beadsight.cli.options import with_default
+    from beadsight.cli.options import add_option
     from beadsight.evaluation.config import DEFAULT_DEVICE
 
-    p.add_argument(
-        "--batch-size",
-        type=int,
-        default=batch_size,
-        help=with_default("frames per batch", batch_size),
-    )
-    p.add_argument(
-        "--device",
-        default=DEFAULT_DEVICE,
-        help=with_default("auto, cpu, cuda, cuda:1, mps, ...", DEFAULT_DEVICE),
-    )
+    add_option(p, "--batch-size", batch_size, "frames per batch")
+    add_option(p, "--device", DEFAULT_DEVICE, "auto, cpu, cuda, cuda:1, mps, ...")
 
 
 def run_evaluate(args: argparse.Namespace) -> int:

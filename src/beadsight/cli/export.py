@@ -19,17 +19,13 @@ def register(commands) -> None:
 
 
 def _export_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.cli.options import add_option
     from beadsight.inference.config import EXPORT_FORMATS, EXPORT_PRECISIONS
 
     p.add_argument("--checkpoint", required=True, help="beadsight or reference checkpoint")
     p.add_argument("--format", required=True, choices=EXPORT_FORMATS)
     p.add_argument("--out", required=True, help=".onnx file, or OpenVINO .xml")
-    p.add_argument(
-        "--precision",
-        default=EXPORT_PRECISIONS[0],
-        choices=EXPORT_PRECISIONS,
-        help=f"(default: {EXPORT_PRECISIONS[0]})",
-    )
+    add_option(p, "--precision", EXPORT_PRECISIONS[0], "model precision", choices=EXPORT_PRECISIONS)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
 
 

@@ -81,44 +81,23 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
 
 def _output_arguments(p: argparse.ArgumentParser) -> None:
     """Where the readings go: the web viewer and the TCP stream."""
+    from beadsight.cli.options import add_option
     from beadsight.live.stream import DEFAULT_PORT as STREAM_PORT
     from beadsight.live.viewer.server import DEFAULT_HOST, DEFAULT_MAX_FPS, DEFAULT_MAX_KPA
     from beadsight.live.viewer.server import DEFAULT_PORT as VIEWER_PORT
 
-    p.add_argument(
-        "--host", default=DEFAULT_HOST, help=f"address of the viewer and stream ({DEFAULT_HOST})"
-    )
-    p.add_argument(
-        "--port",
-        type=int,
-        default=VIEWER_PORT,
-        help=f"viewer port (default {VIEWER_PORT}; 0 = any free port)",
-    )
+    add_option(p, "--host", DEFAULT_HOST, "address of the viewer and stream")
+    add_option(p, "--port", VIEWER_PORT, "viewer port (0 = any free port)")
     p.add_argument("--no-viewer", action="store_true", help="headless: no web viewer")
-    p.add_argument(
-        "--max-fps",
-        type=float,
-        default=DEFAULT_MAX_FPS,
-        help=f"viewer updates per second (default {DEFAULT_MAX_FPS:g})",
-    )
-    p.add_argument(
-        "--max-kpa",
-        type=float,
-        default=DEFAULT_MAX_KPA,
-        help=f"top of the fixed colour scale, kPa (default {DEFAULT_MAX_KPA:g})",
-    )
+    add_option(p, "--max-fps", DEFAULT_MAX_FPS, "viewer updates per second")
+    add_option(p, "--max-kpa", DEFAULT_MAX_KPA, "top of the fixed colour scale, kPa")
     p.add_argument(
         "--record-dir",
         type=Path,
         default=Path("."),
         help="folder for the viewer's record button (default: current folder)",
     )
-    p.add_argument(
-        "--stream-port",
-        type=int,
-        default=STREAM_PORT,
-        help=f"TCP port of the readings stream (default {STREAM_PORT}; 0 = any)",
-    )
+    add_option(p, "--stream-port", STREAM_PORT, "TCP port of the readings stream (0 = any)")
     p.add_argument("--no-stream", action="store_true", help="no TCP readings stream")
 
 

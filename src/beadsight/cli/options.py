@@ -46,6 +46,20 @@ def with_default(help: str, default: Any) -> str:
     )
 
 
+def add_option(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    flag: str,
+    default: Any,
+    help: str,
+    **kwargs: Any,
+) -> None:
+    """``flag`` with a default taken from the library (a module constant), shown in the
+    help; ``type`` follows the default unless given."""
+    if default is not None and "type" not in kwargs and "action" not in kwargs:
+        kwargs["type"] = type(default[0]) if isinstance(default, tuple) else type(default)
+    parser.add_argument(flag, default=default, help=with_default(help, default), **kwargs)
+
+
 def add_field(
     parser: argparse.ArgumentParser | argparse._ArgumentGroup,
     cls: type,

@@ -101,7 +101,7 @@ def register(commands) -> None:
 
 # --- collect ---------------------------------------------------------------------------------
 def _collect_arguments(p: argparse.ArgumentParser) -> None:
-    from beadsight.cli.options import add_fields, field_default, with_default
+    from beadsight.cli.options import add_fields, add_option, field_default
     from beadsight.rig.config import (
         FORCE_LIMIT_N,
         ON_FORCE_LIMIT,
@@ -119,39 +119,29 @@ def _collect_arguments(p: argparse.ArgumentParser) -> None:
     src.add_argument("--camera", metavar="INDEX_OR_PATH", help="camera index or video file")
     add_fields(src, DeviceSpec, DEVICE_FLAGS)
     size = (field_default(DeviceSpec, "camera_width"), field_default(DeviceSpec, "camera_height"))
-    src.add_argument(
-        "--camera-size",
-        type=int,
-        nargs=2,
-        default=size,
-        metavar=("WIDTH", "HEIGHT"),
-        help=with_default("camera frame size asked for", size),
+    add_option(
+        src, "--camera-size", size, "camera frame size asked for", nargs=2, metavar=("W", "H")
     )
     plan = p.add_argument_group("press plan (defaults: the reference pattern)")
     plan.add_argument("--plan", type=Path, help="TOML file with PressPlan fields")
     add_fields(plan, PressPlan, PLAN_FLAGS, override=True)
     safety = p.add_argument_group("safety and session")
-    safety.add_argument(
-        "--force-limit",
-        type=float,
-        default=FORCE_LIMIT_N,
-        metavar="N",
-        help=with_default("abort a press above this force, newtons", FORCE_LIMIT_N),
+    add_option(
+        safety, "--force-limit", FORCE_LIMIT_N, "abort a press above this force, N", metavar="N"
     )
-    safety.add_argument(
+    add_option(
+        safety,
         "--on-force-limit",
+        ON_FORCE_LIMIT[0],
+        "after an aborted press: stop the session or go on",
         choices=ON_FORCE_LIMIT,
-        default=ON_FORCE_LIMIT[0],
-        help=with_default("after an aborted press: stop the session or go on", ON_FORCE_LIMIT[0]),
     )
-    safety.add_argument(
+    add_option(
+        safety,
         "--scale-timeout",
-        type=float,
-        default=SCALE_TIMEOUT_S,
+        SCALE_TIMEOUT_S,
+        "stop (finger lifted) when the scale is silent this long",
         metavar="S",
-        help=with_default(
-            "stop (finger lifted) when the scale is silent this long", SCALE_TIMEOUT_S
-        ),
     )
     safety.add_argument(
         "--resume", action="store_true", help="continue the session in --out with its saved plan"
