@@ -42,11 +42,7 @@ from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.splits import DEFAULT_FRACTIONS, SPLITS, split_presses, window_ends
 from beadsight.errors import BeadSightError
-from beadsight.evaluation.config import (
-    DEFAULT_DEVICE,
-    DEFAULT_SPLIT,
-    SPLIT_CHOICES,
-)
+from beadsight.evaluation.config import DEFAULT_DEVICE, DEFAULT_SPLIT, SPLIT_CHOICES
 from beadsight.evaluation.config import EVALUATE_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.evaluation.metrics import PAPER_METRICS, FrameMetrics, MetricsAccumulator
 from beadsight.evaluation.plots import (
