@@ -61,8 +61,14 @@ def make_press_arrays(presses: int, frames_per_press: int, geometry, rng):
 def make_dataset(tmp_path: Path):
     """Factory: make_dataset(presses=6, frames_per_press=40, image_size=64, ...) -> Path."""
 
-    def make(presses: int = 6, frames_per_press: int = 40, image_size: int = 64, seed: int = 0,
-             name: str = "tiny.h5", fps: float = 30.0) -> Path:
+    def make(
+        presses: int = 6,
+        frames_per_press: int = 40,
+        image_size: int = 64,
+        seed: int = 0,
+        name: str = "tiny.h5",
+        fps: float = 30.0,
+    ) -> Path:
         geometry = SensorGeometry(image_size_px=image_size)
         rng = np.random.default_rng(seed)
         force, position = make_press_arrays(presses, frames_per_press, geometry, rng)
@@ -82,8 +88,11 @@ def tiny_model() -> PressureModel:
     """An untrained width-8, window-15 model for 64x64 frames."""
     torch.manual_seed(0)
     meta = CheckpointMeta(
-        model=ModelConfig(window=15, width=8), geometry=TINY,
-        pixel_mean=[120.0, 120.0, 120.0], pixel_std=[40.0, 40.0, 40.0], output_scale_kpa=10.0,
+        model=ModelConfig(window=15, width=8),
+        geometry=TINY,
+        pixel_mean=[120.0, 120.0, 120.0],
+        pixel_std=[40.0, 40.0, 40.0],
+        output_scale_kpa=10.0,
     )
     return PressureModel.create(meta)
 

@@ -1,5 +1,5 @@
 """Shared pieces of the live/viewer/stream/rosbag tests: tiny models, synthetic presses, and
-a scripted frame source (a camera stand-in that never skips frames and can fail on cue)."""
+a scripted camera (one that never skips frames and can fail on cue)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,13 @@ from conftest import make_press_arrays, synthetic_press_frames
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.live.sources import FrameSource, SourceDisconnected, SourceEnded, SourceFrame
+from beadsight.devices import (
+    CameraDisconnectedError,
+    CameraEndedError,
+    DeviceNotConnectedError,
+    DeviceTimeoutError,
+)
+from beadsight.devices.base import DeviceContext, Frame
 
 TINY = SensorGeometry(image_size_px=64)
 WINDOW = 15
@@ -53,13 +59,15 @@ def write_video(path: Path, frames_rgb: np.ndarray, fps: float = 30.0) -> Path:
     return path
 
 
-class ScriptedSource(FrameSource):
-    """Hands out ``frames`` in order, one per read, never skipping (so every window is known).
+class ScriptedSource(DeviceContext):
+    """A :class:`beadsight.devices.Camera` that hands out ``frames`` in order, one per
+    read, never skipping (so every window is known).
 
     Timestamps are ``t0 + i / fps`` with ``t0`` in the past. Faults on cue:
-    ``disconnect_after=k``: after frame k-1 the source raises SourceDisconnected (an
-    unplugged camera) until reopened; ``failed_reopens``: that many reopen attempts fail
-    first; ``stall_after=k``: before frame k it delivers nothing until ``release`` is set.
+    ``disconnect_after=k``: after frame k-1 the camera raises CameraDisconnectedError (an
+    unplugged camera) until reconnected; ``failed_reopens``: that many reconnects fail
+    first; ``stall_after=k``: before frame k it delivers nothing (DeviceTimeoutError)
+    until ``release`` is set.
     """
 
     def __init__(
@@ -74,6 +82,7 @@ class ScriptedSource(FrameSource):
     ):
         self.name = "scripted"
         self.frames, self.fps, self.channel_order = frames, fps, channel_order
+        self.height, self.width = frames.shape[1:3]
         self.forces = forces
         self.disconnect_after = disconnect_after
         self.failed_reopens = failed_reopens
@@ -81,36 +90,43 @@ class ScriptedSource(FrameSource):
         self.release = threading.Event()
         self.t0 = time.time() - len(frames) / fps - 1.0
         self.next = 0
-        self.opens: list[float] = []  # monotonic times of open() calls
+        self.opens: list[float] = []  # monotonic times of connect() calls
         self.connected = False
         self.closed = threading.Event()
 
-    def open(self) -> None:
+    def connect(self) -> None:
         self.opens.append(time.monotonic())
         self.closed.clear()
         if len(self.opens) > 1 and self.failed_reopens > 0:
             self.failed_reopens -= 1
-            raise SourceDisconnected("camera still unplugged")
+            raise DeviceNotConnectedError(self.name, "camera still unplugged")
         self.connected = True
 
     def close(self) -> None:
         self.connected = False
         self.closed.set()
 
-    def read_new(self, after_index: int, timeout_s: float, limit: int = 1) -> list[SourceFrame]:
+    def async_read(self, timeout_s: float | None = None, max_frames: int | None = None):
         if not self.connected:
-            raise SourceDisconnected("camera unplugged")
+            raise CameraDisconnectedError(self.name, "camera unplugged")
         i = self.next
         if i >= len(self.frames):
-            raise SourceEnded(f"{self.name} ended after {i} frames")
+            raise CameraEndedError(self.name, f"ended after {i} frames")
         if i == self.stall_after and not self.release.wait(timeout_s):
-            return []
+            raise DeviceTimeoutError(self.name, f"no new frame within {timeout_s:g} s")
         self.next += 1
         if self.disconnect_after is not None and self.next == self.disconnect_after:
             self.connected = False
             self.disconnect_after = None
         force = math.nan if self.forces is None else float(self.forces[i])
-        return [SourceFrame(self.frames[i], self.t0 + i / self.fps, i, self.channel_order, force)]
+        t_unix = self.t0 + i / self.fps
+        t_mono = time.monotonic() - (time.time() - t_unix)
+        return [Frame(self.frames[i], i, t_mono, t_unix, self.channel_order, force)]
+
+    def read(self, timeout_s: float | None = None) -> Frame:
+        return self.async_read(timeout_s)[0]
+
+    read_latest = read
 
 
 class StatusLog:

@@ -18,18 +18,31 @@ def reference_training_dict(net: UNet, image_size: int) -> dict:
         "epoch": 7,
         "model_state_dict": net.state_dict(),
         "optimizer_state_dict": torch.optim.AdamW(net.parameters(), lr=1e-4).state_dict(),
-        "train_losses": [0.5, 0.4], "test_losses": [0.6], "val_losses": [0.55],
+        "train_losses": [0.5, 0.4],
+        "test_losses": [0.6],
+        "val_losses": [0.55],
         "pixel_mean": np.array([101.5, 112.25, 120.0]),  # BGR, 0..255
         "pixel_std": np.array([31.0, 29.5, 33.25]),
         "avg_pressure": np.float64(1873.4),  # Pa
         "data_loader_info": {
-            "average_force": np.float64(812.0), "pixel_mean": np.array([101.5, 112.25, 120.0]),
-            "pixel_std": np.array([31.0, 29.5, 33.25]), "image_size": (image_size, image_size),
-            "sensor_size": (41, 41), "contact_radius": 6.25, "force_unit": "g", "dist_unit": "mm",
+            "average_force": np.float64(812.0),
+            "pixel_mean": np.array([101.5, 112.25, 120.0]),
+            "pixel_std": np.array([31.0, 29.5, 33.25]),
+            "image_size": (image_size, image_size),
+            "sensor_size": (41, 41),
+            "contact_radius": 6.25,
+            "force_unit": "g",
+            "dist_unit": "mm",
         },
-        "train_indices": np.arange(20), "test_indices": np.arange(20, 25),
-        "dataset_path": "/data/hour1.hdf5", "lr": 1e-4, "weight_decay": 1e-4,
-        "dropout_prob": 0.2, "window_size": net.config.window, "batch_size": 64, "noise_std": 0.05,
+        "train_indices": np.arange(20),
+        "test_indices": np.arange(20, 25),
+        "dataset_path": "/data/hour1.hdf5",
+        "lr": 1e-4,
+        "weight_decay": 1e-4,
+        "dropout_prob": 0.2,
+        "window_size": net.config.window,
+        "batch_size": 64,
+        "noise_std": 0.05,
     }
 
 

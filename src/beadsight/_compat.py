@@ -33,6 +33,7 @@ MOVED_MODULES = {
     "beadsight.plots": "beadsight.evaluation.plots",
     "beadsight.data.windows": "beadsight.train.windows",
     "beadsight.collect": "beadsight.rig.collect",
+    "beadsight.devices.virtual.clock": "beadsight.devices.clock",
 }
 
 

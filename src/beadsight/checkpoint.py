@@ -243,15 +243,19 @@ def read_checkpoint_file(path: str | Path) -> dict[str, Any]:
         text = str(e)
         if "Weights only load failed" in text or "GLOBAL" in text:
             lines = [ln.strip() for ln in text.splitlines()]
-            detail = next((ln for ln in lines if "GLOBAL" in ln or "Unsupported" in ln),
-                          "unsupported pickle content")
+            detail = next(
+                (ln for ln in lines if "GLOBAL" in ln or "Unsupported" in ln),
+                "unsupported pickle content",
+            )
             raise UnsafeCheckpointError(
                 f"{path}: refused to load: not a weights-only checkpoint ({detail}). Only tensors, numbers, strings and numpy arrays are read; "
                 "nothing from the file was executed. Convert checkpoints you trust with a "
                 "trusted tool first."
             ) from None
         first = text.splitlines()[0] if text else ""
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {first})") from None
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint ({type(e).__name__}: {first})"
+        ) from None
     if not isinstance(obj, dict):
         raise CheckpointError(f"{path}: expected a dict checkpoint, got {type(obj).__name__}")
     return obj

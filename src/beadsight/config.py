@@ -26,6 +26,7 @@ else:  # pragma: no cover
 STANDARD_GRAVITY_M_S2 = 9.80665  # m/s^2; 1 g-force = 9.80665e-3 N
 REFERENCE_G_TO_N = 9.81e-3  # the reference code converts grams with g = 9.81 m/s^2
 DEFAULT_SPLIT_FRACTIONS = (0.7, 0.1, 0.2)  # train, val, test fractions of presses (paper)
+REFERENCE_CENTRE_XY_MM = (151.8, 108.9)  # printer XY of the sensor centre (reference rig)
 
 T = TypeVar("T")
 

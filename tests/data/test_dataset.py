@@ -26,9 +26,18 @@ def write_reference_file(path, n=90, size=32, force_g=None, drop=()):
         for key, value in data.items():
             if key not in drop:
                 f.create_dataset(key, data=value)
-        f.attrs.update({"fps": 30, "contact_radius": 6.25, "sensor_size": [41, 41],
-                        "force_unit": "g", "dist_unit": "mm", "radius": 13.75,
-                        "pixel_mean": [10.0, 20.0, 30.0], "pixel_std": [1.0, 2.0, 3.0]})
+        f.attrs.update(
+            {
+                "fps": 30,
+                "contact_radius": 6.25,
+                "sensor_size": [41, 41],
+                "force_unit": "g",
+                "dist_unit": "mm",
+                "radius": 13.75,
+                "pixel_mean": [10.0, 20.0, 30.0],
+                "pixel_std": [1.0, 2.0, 3.0],
+            }
+        )
     return data
 
 
@@ -70,8 +79,13 @@ def test_reference_file_is_read_natively_and_imported(tmp_path):
 def test_crash_mid_write_leaves_readable_partial_file(tmp_path):
     g = SensorGeometry(image_size_px=16)
     w = DatasetWriter(tmp_path / "d.h5", g)
-    w.append(np.zeros((5, 16, 16, 3), np.uint8), np.ones(5), np.zeros((5, 2)), np.ones(5, bool),
-             np.arange(5.0))
+    w.append(
+        np.zeros((5, 16, 16, 3), np.uint8),
+        np.ones(5),
+        np.zeros((5, 2)),
+        np.ones(5, bool),
+        np.arange(5.0),
+    )
     w.abort()  # as if the process died here
     assert not (tmp_path / "d.h5").exists()
     with h5py.File(tmp_path / "d.h5.partial") as f:
@@ -112,7 +126,10 @@ def test_nan_forces_and_no_presses(tmp_path):
     with pytest.raises(DatasetError, match="nan.h5: field 'force' has 1 NaN/inf values.*frame 40"):
         open_dataset(tmp_path / "nan.h5")
     write_reference_file(tmp_path / "flat.h5", force_g=np.zeros(90))
-    with open_dataset(tmp_path / "flat.h5") as ds, pytest.raises(DatasetError, match="flat.h5: no presses"):
+    with (
+        open_dataset(tmp_path / "flat.h5") as ds,
+        pytest.raises(DatasetError, match="flat.h5: no presses"),
+    ):
         ds.require_presses()
 
 
@@ -126,7 +143,9 @@ def test_info_and_import_cli(tmp_path, capsys):
     from beadsight.cli import main
 
     write_reference_file(tmp_path / "ref.hdf5")
-    assert main(["import-reference", str(tmp_path / "ref.hdf5"), "--out", str(tmp_path / "o.h5")]) == 0
+    assert (
+        main(["import-reference", str(tmp_path / "ref.hdf5"), "--out", str(tmp_path / "o.h5")]) == 0
+    )
     assert main(["info", str(tmp_path / "o.h5"), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.splitlines()[-1])
     assert summary["presses"] == 2 and summary["frames"] == 90 and summary["format"] == "beadsight"

@@ -1,7 +1,9 @@
-"""OpenCVCamera on real MJPG video files, and VirtualCamera's fault paths."""
+"""The cameras: OpenCVCamera on real MJPG video files, the virtual and simulated cameras,
+one Camera API over all of them, and their fault paths."""
 
 from __future__ import annotations
 
+import math
 import time
 
 import cv2
@@ -9,13 +11,19 @@ import numpy as np
 import pytest
 
 from beadsight.devices import (
+    Camera,
     CameraConfigError,
     CameraDisconnectedError,
+    CameraEndedError,
     DeviceNotConnectedError,
     DeviceTimeoutError,
+    Frame,
     OpenCVCamera,
+    SimClock,
+    VideoFileNotFoundError,
 )
-from beadsight.devices.virtual import VirtualCamera
+from beadsight.devices.opencv import is_device_path
+from beadsight.devices.virtual import PlaybackCamera, SimCamera, VirtualCamera
 
 WIDTH, HEIGHT = 64, 48
 LEVEL_STEP = 12  # grey level added per frame, so frame k can be recognised after MJPG
@@ -172,3 +180,169 @@ def test_virtual_camera_timeout_when_stalled():
         cam.read_latest(timeout_s=1.0)  # that scheduled frame
         with pytest.raises(DeviceTimeoutError, match="no new frame within 0.2 s"):
             cam.read_latest(timeout_s=0.2)
+
+
+# --- one Camera API over every kind of camera ------------------------------------------------
+def _video_camera(path):
+    return OpenCVCamera(str(path), width=None, height=None)
+
+
+def _sim_camera(_path):
+    return SimCamera(image_size=32, fps=60, seed=1)
+
+
+def _virtual_camera(_path):
+    return VirtualCamera(flat(), fps=60)
+
+
+@pytest.mark.parametrize("make", [_video_camera, _sim_camera, _virtual_camera])
+def test_every_camera_has_the_same_api(video, make):
+    camera = make(video)
+    assert isinstance(camera, Camera)
+    with camera as cam:
+        assert cam.width > 0 and cam.height > 0 and cam.fps > 0
+        first = cam.read(timeout_s=5.0)
+        batch = cam.async_read(timeout_s=5.0, max_frames=3)
+        latest = cam.read_latest(timeout_s=5.0)
+    frames = [first, *batch, latest]
+    assert all(isinstance(f, Frame) for f in frames)
+    assert all(f.image.shape == (cam.height, cam.width, 3) for f in frames)
+    assert all(f.image.dtype == np.uint8 for f in frames)
+    assert first.index == 0 and 1 <= len(batch) <= 3
+    indices = [f.index for f in frames]
+    assert indices == sorted(set(indices))  # none handed out twice, in capture order
+    assert np.all(np.diff([f.t_unix for f in frames]) > 0)
+    assert np.all(np.diff([f.t_mono for f in frames]) >= 0)
+    assert cam.stats.captured >= len(frames)
+
+
+def test_sim_camera_frames_carry_the_true_force():
+    with SimCamera(image_size=32, fps=60, seed=2) as cam:
+        frames = [cam.read(timeout_s=5.0) for _ in range(5)]
+    assert cam.name == "sim (seed 2)"
+    assert all(f.channel_order == "RGB" and math.isfinite(f.reference_force_n) for f in frames)
+
+
+def test_video_file_frames_have_no_reference_force(video):
+    with OpenCVCamera(str(video), width=WIDTH, height=HEIGHT, realtime=False) as cam:
+        frame = cam.read(timeout_s=2.0)
+    assert frame.channel_order == "BGR" and math.isnan(frame.reference_force_n)
+    assert frame.timestamp_s == frame.t_unix
+
+
+def test_async_read_returns_every_new_frame_and_counts_the_skipped(video):
+    with OpenCVCamera(str(video), width=WIDTH, height=HEIGHT, realtime=False) as cam:
+        assert cam.read(timeout_s=2.0).index == 0
+        wait_for(lambda: cam.ended)  # the whole file is queued now
+        frames = cam.async_read(timeout_s=2.0, max_frames=5)
+        assert [f.index for f in frames] == [7, 8, 9, 10, 11]
+        assert [frame_number(f.image) for f in frames] == [7, 8, 9, 10, 11]
+        assert cam.stats.skipped == 6  # frames 1-6 were passed over, and counted
+        with pytest.raises(CameraEndedError, match="end of file after 12 frames"):
+            cam.async_read(timeout_s=2.0)
+
+
+def test_read_latest_never_returns_a_stale_frame_as_new(video):
+    """Whichever read handed a frame out, read_latest waits for a newer one, and raises
+    (ended, timed out) rather than hand the last frame out again."""
+    with OpenCVCamera(str(video), width=WIDTH, height=HEIGHT, realtime=False) as cam:
+        wait_for(lambda: cam.ended)  # every frame is captured; the newest is frame 11
+        assert cam.read(timeout_s=2.0).index == 0
+        assert cam.read_latest(timeout_s=2.0).index == 11
+        with pytest.raises(CameraEndedError):
+            cam.read_latest(timeout_s=0.5)  # frame 11 again would be stale
+        with pytest.raises(CameraEndedError):
+            cam.read(timeout_s=0.5)  # frames 1-10 are older than what was handed out
+    with VirtualCamera(flat(), fps=20) as cam:
+        seen = cam.read_latest(timeout_s=1.0)
+        cam.stall(5.0)  # after the frame already scheduled, nothing new comes
+        later = [cam.read_latest(timeout_s=1.0)]
+        with pytest.raises(DeviceTimeoutError):
+            later.append(cam.read_latest(timeout_s=0.3))
+        assert later[0].index > seen.index
+        cam.unplug()
+        with pytest.raises(CameraDisconnectedError):
+            cam.read_latest(timeout_s=2.0)
+
+
+def test_looping_file_keeps_counting(video):
+    with OpenCVCamera(str(video), width=None, height=None, realtime=False, loop=True) as cam:
+        frames = [cam.read(timeout_s=2.0) for _ in range(30)]
+    assert [f.index for f in frames] == list(range(30))
+    assert [frame_number(f.image) for f in frames] == [k % 12 for k in range(30)]
+
+
+def test_played_frames_end_or_loop():
+    images = [np.full((HEIGHT, WIDTH, 3), 10 + LEVEL_STEP * k, np.uint8) for k in range(4)]
+    with PlaybackCamera(lambda: [(im, float(k)) for k, im in enumerate(images)], fps=200) as cam:
+        frames = [cam.read(timeout_s=2.0) for _ in range(4)]
+        with pytest.raises(CameraEndedError, match="playback: ended after 4 frames"):
+            cam.read(timeout_s=2.0)
+    assert [f.reference_force_n for f in frames] == [0.0, 1.0, 2.0, 3.0]
+    with PlaybackCamera(lambda: images, fps=200, loop=True) as cam:
+        frames = [cam.read(timeout_s=2.0) for _ in range(10)]
+    assert [frame_number(f.image) for f in frames] == [k % 4 for k in range(10)]
+    assert [f.index for f in frames] == list(range(10))
+
+
+def test_unplugged_camera_reconnects_with_indices_counting_on():
+    with VirtualCamera(flat(), fps=100) as cam:
+        before = cam.read(timeout_s=1.0)
+        cam.unplug()
+        with pytest.raises(CameraDisconnectedError, match="unplugged"):
+            while True:
+                cam.read(timeout_s=1.0)
+        cam.close()
+        cam.connect()  # plugged back in
+        after = cam.read_latest(timeout_s=1.0)
+    assert after.index > before.index and after.t_unix > before.t_unix
+
+
+def test_absent_camera_index_and_device_path_are_named():
+    """No camera exists here: opening one fails with an error naming it and a hint."""
+    with pytest.raises(DeviceNotConnectedError) as info:
+        OpenCVCamera(63, width=None, height=None).connect()
+    assert str(info.value).startswith("camera 63: could not be opened")
+    assert "hint: is it plugged in?" in str(info.value)
+    with pytest.raises(DeviceNotConnectedError, match=r"camera /dev/video63: could not be opened"):
+        OpenCVCamera("/dev/video63").connect()
+    assert is_device_path("/dev/video63") and not is_device_path("press.avi")
+
+
+def test_missing_video_file_is_a_file_not_found_error(tmp_path):
+    with pytest.raises(VideoFileNotFoundError) as info:
+        OpenCVCamera(tmp_path / "gone.avi").connect()
+    assert isinstance(info.value, FileNotFoundError)
+    assert str(info.value) == f"camera gone.avi: video file {tmp_path / 'gone.avi'} does not exist"
+
+
+def test_bad_frames_from_a_renderer_end_the_stream_with_the_reason():
+    with pytest.raises(ValueError, match=r"virtual camera: frames must be \(H, W, 3\) uint8"):
+        VirtualCamera(lambda: np.zeros((8, 8), np.uint8)).connect()
+    calls = 0
+
+    def render():
+        nonlocal calls
+        calls += 1
+        return np.zeros((8, 8, 3), np.uint8 if calls < 3 else np.float32)
+
+    with VirtualCamera(render, fps=100) as cam:
+        with pytest.raises(CameraDisconnectedError, match="capture failed"):
+            while True:
+                cam.read(timeout_s=1.0)
+
+
+def test_old_names_still_import_with_a_warning():
+    with pytest.warns(DeprecationWarning, match="beadsight.devices.OpenCVCamera"):
+        from beadsight.devices.camera import OpenCVCamera as Old
+    assert Old is OpenCVCamera
+    with pytest.warns(DeprecationWarning, match="beadsight.devices.clock"):
+        from beadsight.devices.virtual.clock import SimClock as OldClock
+    assert OldClock is SimClock
+
+
+def wait_for(predicate, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)

@@ -16,7 +16,6 @@ from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.dataset import DatasetError, DatasetWriter, open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.splits import split_presses, window_ends
-from beadsight.train.windows import dataset_fingerprint, resize_frames
 from beadsight.evaluation.evaluate import (
     EvaluationError,
     WindowReader,
@@ -25,6 +24,7 @@ from beadsight.evaluation.evaluate import (
     select_split,
 )
 from beadsight.geometry import total_force_n
+from beadsight.train.windows import dataset_fingerprint, resize_frames
 
 REQUIRED_KEYS = {
     "mae_kpa",

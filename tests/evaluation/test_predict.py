@@ -11,8 +11,8 @@ import pytest
 
 from beadsight.cli import main
 from beadsight.data.dataset import open_dataset
-from beadsight.geometry import total_force_n
 from beadsight.evaluation.predict import PredictionError, WindowBuffer, predict_recording
+from beadsight.geometry import total_force_n
 
 FPS = 30.0
 

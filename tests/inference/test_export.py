@@ -15,7 +15,6 @@ import torch
 
 import beadsight.inference.export as export_module
 from beadsight import PressurePredictor
-from beadsight.inference.runtimes import probe_window
 from beadsight.checkpoint import PressureModel
 from beadsight.cli import main
 from beadsight.inference.export import (
@@ -26,6 +25,7 @@ from beadsight.inference.export import (
     model_fingerprint,
     read_exported_metadata,
 )
+from beadsight.inference.runtimes import probe_window
 
 onnx = pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from beadsight import PressurePredictor, Reading
-from beadsight.inference.runtimes import Backend, TorchBackend
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig
 from beadsight.geometry import (
@@ -19,6 +18,7 @@ from beadsight.geometry import (
     total_force_n,
 )
 from beadsight.inference.predictor import DEFAULT_FPS, otsu_threshold
+from beadsight.inference.runtimes import Backend, TorchBackend
 
 FPS = DEFAULT_FPS
 T = 15

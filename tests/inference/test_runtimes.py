@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from beadsight import PressurePredictor
+from beadsight.checkpoint import PressureModel
 from beadsight.inference.runtimes import (
     CHOICE_FILE,
     PARITY_TOLERANCE,
@@ -25,7 +26,6 @@ from beadsight.inference.runtimes import (
     probe_window,
     select_backend,
 )
-from beadsight.checkpoint import PressureModel
 
 T = 15
 HAS_CUDA = torch.cuda.is_available()

@@ -9,9 +9,9 @@ import pytest
 from live_helpers import BACKEND, WINDOW, ScriptedSource, press_frames, tiny_model
 
 from beadsight.cli import main
-from beadsight.live.sensor import LiveSensor
-from beadsight.live.readings import ReadingsFileError, open_readings
 from beadsight.live.mcap import FRAME_ID, TOPIC_COP, TOPIC_FORCE, TOPIC_PRESSURE, export_mcap
+from beadsight.live.readings import ReadingsFileError, open_readings
+from beadsight.live.sensor import LiveSensor
 
 pytest.importorskip("mcap_ros2")
 

@@ -26,12 +26,13 @@ from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture
 )
 
 from beadsight.cli import main
+from beadsight.devices.virtual import PlaybackCamera
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
-from beadsight.live.sensor import LiveSensor, run_live
-from beadsight.live.sources import PacedSource, frame_converter
-from beadsight.preprocess import FrameSizeError, Preprocessor
 from beadsight.live.readings import ReadingsFileError, open_readings
+from beadsight.live.sensor import LiveSensor, run_live
+from beadsight.live.sources import frame_converter
 from beadsight.live.viewer.server import ViewerServer
+from beadsight.preprocess import FrameSizeError, Preprocessor
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +72,7 @@ def test_every_reading_matches_the_model_on_its_window(model, presses):
 def test_paced_source_runs_at_camera_rate_and_reports_latency(model, presses):
     frames, force = presses
     fps = 30.0
-    source = PacedSource("paced", lambda: zip(frames, force, strict=True), fps)
+    source = PlaybackCamera(lambda: zip(frames, force, strict=True), fps, name="paced")
     got, stats_during = [], []
 
     def on_reading(reading):
@@ -100,7 +101,7 @@ def test_loop_slower_than_camera_keeps_windows_consecutive(model, presses):
     window without readings of their own, so each reading still covers T consecutive
     frames (no reset, no stale window)."""
     frames, force = presses
-    source = PacedSource("fast", lambda: zip(frames, force, strict=True), fps=150)
+    source = PlaybackCamera(lambda: zip(frames, force, strict=True), fps=150, name="fast")
     updates, stats = [], []
 
     def on_update(update):
@@ -166,8 +167,8 @@ def test_reference_camera_frames_go_through_reference_preprocessing(model):
 def test_bgr_frames_at_model_size_are_reordered_to_rgb(presses):
     frames, _ = presses
     source = ScriptedSource(np.ascontiguousarray(frames[:, :, :, ::-1]), channel_order="BGR")
-    source.open()
-    first = source.read_newest(-1, 1)
+    source.connect()
+    first = source.read_latest(1)
     to_rgb = frame_converter(first, source.name, TINY.image_size_px)
     np.testing.assert_array_equal(to_rgb(first), frames[0])
 
@@ -391,7 +392,6 @@ def test_sim_source_paces_simulated_frames_with_true_force(model):
 
 def test_virtual_camera_unplug_is_reported_and_reopened(model):
     from beadsight.devices.virtual.camera import VirtualCamera
-    from beadsight.live.sources import CameraSource
 
     frames, _ = press_frames(presses=1, per_press=30)
     frames_bgr = np.ascontiguousarray(frames[:, :, :, ::-1])
@@ -403,9 +403,8 @@ def test_virtual_camera_unplug_is_reported_and_reopened(model):
         return frames_bgr[count % len(frames_bgr)]
 
     camera = VirtualCamera(render, fps=60)
-    source = CameraSource("virtual camera", lambda: camera)
     log = StatusLog()
-    sensor = LiveSensor(model, source, reconnect_backoff_s=(0.05, 0.2), **BACKEND)
+    sensor = LiveSensor(model, camera, reconnect_backoff_s=(0.05, 0.2), **BACKEND)
     sensor.add_listener(log)
     with sensor:
         readings = sensor.readings()

@@ -16,6 +16,10 @@ import numpy as np
 import pytest
 
 from beadsight.cli import main
+from beadsight.config import ConfigError
+from beadsight.data.dataset import open_dataset
+from beadsight.data.process import ProcessConfig, process_recording
+from beadsight.data.recording import open_recording, read_events, read_session
 from beadsight.rig.collect import (
     DeviceSpec,
     PressPlan,
@@ -24,10 +28,6 @@ from beadsight.rig.collect import (
     open_devices,
     simulator_config,
 )
-from beadsight.config import ConfigError
-from beadsight.data.dataset import open_dataset
-from beadsight.data.process import ProcessConfig, process_recording
-from beadsight.data.recording import open_recording, read_events, read_session
 
 TIME_SCALE = 8.0  # simulated seconds per host second: a 10 s press takes ~1.3 s
 CAMERA_FPS = 8.0  # simulated; 64 host frames/s keeps the busy test machine up
@@ -44,11 +44,11 @@ def _plan(rig_config, **kw) -> PressPlan:
 class Rig:
     """A virtual rig with connected drivers, through the same open_devices as hardware."""
 
-    def __init__(self, **rig_kw):
+    def __init__(self, image: int = IMAGE, camera=None, **rig_kw):
         from beadsight.devices.virtual.rig import VirtualRig
 
         self.spec = VirtualRigSpec(
-            time_scale=TIME_SCALE, camera_mode="sensor", image_size_px=IMAGE, camera_fps=CAMERA_FPS
+            time_scale=TIME_SCALE, camera_mode="sensor", image_size_px=image, camera_fps=CAMERA_FPS
         )
         self.config = simulator_config(self.spec)
         self.rig = VirtualRig(
@@ -59,13 +59,15 @@ class Rig:
             camera_fps=CAMERA_FPS,
             **rig_kw,
         )
+        self.own_camera = camera  # replaces the rig's camera (e.g. an OpenCVCamera)
 
     def __enter__(self):
         self.rig.start()
         spec = DeviceSpec(
             self.rig.printer_port, self.rig.scale_port, "virtual", scale_protocol="beadsight"
         )
-        self._devices = open_devices(spec, self.rig.envelope, camera=self.rig.camera)
+        camera = self.own_camera if self.own_camera is not None else self.rig.camera
+        self._devices = open_devices(spec, self.rig.envelope, camera=camera)
         self.printer, self.scale, self.camera = self._devices.__enter__()
         return self
 
@@ -254,6 +256,61 @@ def test_resume_continues_the_plan(tmp_path):
         out, tmp_path / "d.h5", ProcessConfig(image_size=IMAGE, preprocess="none"), progress=False
     )
     assert qa["presses"] == 3
+
+
+def test_collection_and_live_read_the_same_virtual_camera(tmp_path):
+    from live_helpers import BACKEND, tiny_model
+
+    from beadsight.devices import Camera
+    from beadsight.devices.virtual import VirtualCamera
+    from beadsight.live.sensor import LiveSensor
+
+    with Rig(image=64) as r:
+        result = r.collect(_plan(r.config, calibration_presses=0), tmp_path / "raw")
+        assert result.ok and result.frames > 0
+        camera = r.camera
+        assert type(camera) is VirtualCamera and isinstance(camera, Camera)
+        readings = []
+        with LiveSensor(tiny_model(), camera, **BACKEND) as sensor:
+            assert sensor.source is camera
+            for reading in sensor.readings():
+                readings.append(reading)
+                if len(readings) == 3:
+                    break
+    assert sensor.error is None and len(readings) == 3
+    assert readings[0].timestamp_s > open_recording(tmp_path / "raw").frames.t_unix[-1]
+
+
+def test_collection_records_every_frame_of_a_video_file_camera(tmp_path):
+    """The hardware path with OpenCV's camera class: here on a real MJPG file it loops."""
+    import cv2
+
+    from beadsight.devices import OpenCVCamera
+
+    video = tmp_path / "grey.avi"
+    levels = [20 + 20 * k for k in range(10)]  # frame k of the file is flat grey levels[k]
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (IMAGE, IMAGE))
+    for level in levels:
+        writer.write(np.full((IMAGE, IMAGE, 3), level, np.uint8))
+    writer.release()
+    camera = OpenCVCamera(video, width=None, height=None, loop=True)
+    with Rig(camera=camera) as r:
+        result = r.collect(_plan(r.config, calibration_presses=0), tmp_path / "raw")
+    assert result.ok and result.frames > len(levels)  # more than one pass of the file
+    rec = open_recording(tmp_path / "raw")
+    assert rec.metadata["devices"]["camera"]["type"] == "OpenCVCamera"
+    np.testing.assert_array_equal(rec.frames.camera_index, np.arange(result.frames))
+    cap = cv2.VideoCapture(str(rec.videos[0]))
+    recorded = []
+    while len(recorded) < 25:
+        ok, image = cap.read()
+        if not ok:
+            break
+        recorded.append(float(image.mean()))
+    cap.release()
+    expected = [levels[k % len(levels)] for k in range(len(recorded))]
+    assert len(recorded) == min(25, int((rec.frames.chunk == 0).sum()))
+    np.testing.assert_allclose(recorded, expected, atol=3.0)
 
 
 def test_camera_unplugged_stops_cleanly(tmp_path):

@@ -24,8 +24,9 @@ def label_maps(force_n, position_mm, contact, geometry: SensorGeometry):
 
         if isinstance(force_n, torch.Tensor):
             contact = torch.as_tensor(contact, device=force_n.device)
-            return disk_maps(torch.where(contact, force_n, torch.zeros_like(force_n)),
-                             position_mm, geometry)
+            return disk_maps(
+                torch.where(contact, force_n, torch.zeros_like(force_n)), position_mm, geometry
+            )
     except ImportError:  # pragma: no cover
         pass
     force = np.where(np.asarray(contact, bool), np.asarray(force_n, np.float64), 0.0)

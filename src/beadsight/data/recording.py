@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 
 from beadsight import __version__
-from beadsight.config import REFERENCE_G_TO_N
+from beadsight.config import REFERENCE_CENTRE_XY_MM, REFERENCE_G_TO_N
 from beadsight.errors import BeadSightError
 from beadsight.geometry import force_to_newtons
 
@@ -76,7 +76,6 @@ GCODE_ROUNDING_MM = 0.01  # G-code coordinates are written with 2-3 decimals
 SAME_XY_TOLERANCE_MM = 1e-3  # data moves closer than this belong to the same press
 REF_NON_DATA_XY = -1.0  # the reference logs x = y = -1 for moves that are not at a press
 
-REFERENCE_CENTRE_XY_MM = (151.8, 108.9)  # printer XY of the sensor centre, reference rig
 DEFAULT_FPS = 30.0
 
 

@@ -23,7 +23,9 @@ def split_presses(
     least 3 presses every split gets at least one.
     """
     if len(fractions) != 3 or min(fractions) < 0 or not np.isclose(sum(fractions), 1.0):
-        raise ValueError(f"split fractions must be three non-negative numbers summing to 1, got {fractions}")
+        raise ValueError(
+            f"split fractions must be three non-negative numbers summing to 1, got {fractions}"
+        )
     if num_presses < 1:
         raise ValueError("cannot split a dataset with no presses")
     ids = np.random.default_rng(seed).permutation(num_presses)

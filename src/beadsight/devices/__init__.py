@@ -6,18 +6,21 @@ Drivers (each a context manager with ``connect()`` / ``close()``):
   a :class:`SafetyEnvelope` checked before anything is sent.
 * :class:`HX711Scale` - background reader of the Arduino scale (beadsight firmware or the
   reference sketch), host-timestamped :class:`Reading` objects.
-* :class:`OpenCVCamera` - camera index or video file, background reader,
-  timestamped :class:`Frame` objects, ``read`` / ``read_latest``.
+* :class:`OpenCVCamera` - camera index, device path or video file; like every
+  :class:`Camera`, a background reader of timestamped :class:`Frame` objects with
+  ``read`` / ``async_read`` / ``read_latest`` (:mod:`beadsight.devices.camera`).
 
 Virtual twins live in :mod:`beadsight.devices.virtual` (``VirtualPrinter``,
-``VirtualScale``, ``VirtualCamera``, ``VirtualRig``); they are importable from here
-too, lazily. Errors are :class:`DeviceError` subclasses naming the device, with a hint.
+``VirtualScale``, ``VirtualCamera``, ``PlaybackCamera``, ``SimCamera``, ``VirtualRig``);
+they are importable from here too, lazily. Errors are :class:`DeviceError` subclasses
+naming the device, with a hint.
 """
 
 from beadsight.devices.base import (
     Camera,
     CameraConfigError,
     CameraDisconnectedError,
+    CameraEndedError,
     CommandRecord,
     DeviceError,
     DeviceNotConnectedError,
@@ -30,18 +33,30 @@ from beadsight.devices.base import (
     Scale,
     ScaleError,
     ScaleReading,
+    VideoFileNotFoundError,
 )
-from beadsight.devices.camera import CameraStats, OpenCVCamera
+from beadsight.devices.camera import BufferedCamera, CameraStats
 from beadsight.devices.envelope import SafetyEnvelope
 from beadsight.devices.hx711 import HX711Scale, ScaleStats
 from beadsight.devices.marlin import MarlinPrinter
+from beadsight.devices.opencv import OpenCVCamera
 
-_VIRTUAL = ("VirtualCamera", "VirtualPrinter", "VirtualRig", "VirtualScale", "SimClock")
+_VIRTUAL = (
+    "PlaybackCamera",
+    "SimCamera",
+    "SimClock",
+    "VirtualCamera",
+    "VirtualPrinter",
+    "VirtualRig",
+    "VirtualScale",
+)
 
 __all__ = [
+    "BufferedCamera",
     "Camera",
     "CameraConfigError",
     "CameraDisconnectedError",
+    "CameraEndedError",
     "CameraStats",
     "CommandRecord",
     "DeviceError",
@@ -60,6 +75,7 @@ __all__ = [
     "ScaleError",
     "ScaleReading",
     "ScaleStats",
+    "VideoFileNotFoundError",
     *_VIRTUAL,
 ]
 

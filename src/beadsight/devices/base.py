@@ -1,10 +1,10 @@
 """Small device interfaces (Camera, Printer, Scale), their records and their exceptions.
 
-Collection code takes device objects typed by these protocols, so it runs unchanged on
-the real drivers (:class:`~beadsight.devices.marlin.MarlinPrinter`,
+Collection and live sensing take device objects typed by these protocols, so they run
+unchanged on the real drivers (:class:`~beadsight.devices.marlin.MarlinPrinter`,
 :class:`~beadsight.devices.hx711.HX711Scale`,
-:class:`~beadsight.devices.camera.OpenCVCamera`) and on the virtual rig
-(:mod:`beadsight.devices.virtual`).
+:class:`~beadsight.devices.opencv.OpenCVCamera`) and on the virtual twins
+(:mod:`beadsight.devices.virtual`: the rig, the simulated sensor camera).
 
 Timestamps: every record carries two host clocks read at the same moment:
 ``t_unix`` (``time.time()``, float64 s since the epoch, comparable across machines and
@@ -18,6 +18,7 @@ so the CLI prints it as one line); its message starts with the device's name (e.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol, runtime_checkable
@@ -72,6 +73,14 @@ class CameraDisconnectedError(DeviceNotConnectedError):
     """The camera stopped delivering frames (end of file, unplugged) and the buffer is empty."""
 
 
+class CameraEndedError(CameraDisconnectedError):
+    """A finite camera (a video file, played frames) delivered its last frame: not a fault."""
+
+
+class VideoFileNotFoundError(DeviceNotConnectedError, FileNotFoundError):
+    """The video file a camera should play does not exist (also a FileNotFoundError)."""
+
+
 # --- clocks and records ------------------------------------------------------------------
 def host_now() -> tuple[float, float]:
     """``(t_unix, t_mono)``: both host clocks read back to back, float64 seconds."""
@@ -120,17 +129,28 @@ ScaleReading = Reading  # alias for readers who want the longer name
 
 @dataclass(frozen=True)
 class Frame:
-    """One captured camera frame.
+    """One captured camera frame (every camera, for collection and live sensing alike).
 
-    ``image``: (H, W, 3) uint8 **BGR** (OpenCV order). ``index``: capture order from 0;
-    a jump between two frames you read means frames were skipped or dropped in between.
-    ``t_mono`` / ``t_unix``: host time the frame was captured (s).
+    ``image``: (H, W, 3) uint8 in ``channel_order`` ("BGR", OpenCV's order, for cameras and
+    video files; "RGB" for the simulated sensor). ``index``: capture order since the camera
+    object was made, counting on across reconnects and loops of a file; a jump between two
+    frames you read means frames were skipped or dropped in between. ``t_mono`` /
+    ``t_unix``: host time the frame was captured (s); ``t_unix`` strictly increases from
+    frame to frame. ``reference_force_n``: the true force on the sensor when the camera
+    knows it (the simulator), else NaN.
     """
 
     image: np.ndarray
     index: int
     t_mono: float
     t_unix: float
+    channel_order: str = "BGR"
+    reference_force_n: float = math.nan
+
+    @property
+    def timestamp_s(self) -> float:
+        """The capture time on the unix clock (``t_unix``): the stamp readings carry."""
+        return self.t_unix
 
 
 # --- protocols --------------------------------------------------------------------------
@@ -170,7 +190,29 @@ class Scale(Protocol):
 
 @runtime_checkable
 class Camera(Protocol):
-    """A frame source with a background reader (OpenCV camera / file, virtual camera)."""
+    """A camera with a background reader: USB camera, video file, simulated sensor, virtual rig.
+
+    The implementations are :class:`~beadsight.devices.opencv.OpenCVCamera` (camera index,
+    device path or video file), :class:`~beadsight.devices.virtual.VirtualCamera` (the
+    virtual rig), :class:`~beadsight.devices.virtual.PlaybackCamera` and
+    :class:`~beadsight.devices.virtual.SimCamera` (the simulated sensor). ``width``,
+    ``height`` (px) and ``fps`` (frames per host second) are known once connected.
+
+    Three ways to read, as in lerobot's cameras; none ever hands out a frame twice:
+
+    * :meth:`read` - the next frame in capture order (every frame: recording);
+    * :meth:`async_read` - every frame the background reader captured since the last
+      read, oldest first, at most ``max_frames`` of the newest (the older ones count as
+      skipped), waiting for one if none is new (live sensing keeps its window whole);
+    * :meth:`read_latest` - only the newest frame, waiting for one if it was handed out
+      already (control loops; lerobot's ``async_read``).
+
+    Each waits up to ``timeout_s`` (None: the camera's default) and raises
+    :class:`DeviceTimeoutError` when nothing new came, :class:`CameraEndedError` once a
+    finite camera played its last frame, :class:`CameraDisconnectedError` once a live one
+    stopped, and :class:`DeviceNotConnectedError` before :meth:`connect`. Errors name the
+    camera and, where there is a likely fix, give a hint.
+    """
 
     name: str
     width: int
@@ -180,4 +222,27 @@ class Camera(Protocol):
     def connect(self) -> None: ...
     def close(self) -> None: ...
     def read(self, timeout_s: float | None = None) -> Frame: ...
+    def async_read(
+        self, timeout_s: float | None = None, max_frames: int | None = None
+    ) -> list[Frame]: ...
     def read_latest(self, timeout_s: float | None = None) -> Frame: ...
+    def __enter__(self) -> Camera: ...
+    def __exit__(self, *exc: object) -> None: ...
+
+
+class DeviceContext:
+    """Mixin: ``with device:`` connects on entry and closes on exit (every device has
+    ``connect()`` and an idempotent ``close()``)."""
+
+    def connect(self) -> None:  # pragma: no cover - every device defines its own
+        raise NotImplementedError
+
+    def close(self) -> None:  # pragma: no cover - every device defines its own
+        raise NotImplementedError
+
+    def __enter__(self):
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

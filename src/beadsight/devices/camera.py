@@ -1,28 +1,38 @@
-"""Cameras with a background reader: OpenCV devices and video files, plus the shared base.
+"""The camera base: a background reader, an ordered queue, the newest frame, frame accounting.
 
-:class:`BufferedCamera` runs one reader thread per camera. Each captured frame gets its
-capture timestamps (monotonic and wall clock, taken as the capture call returns) and a
-capture index, and goes into a bounded queue (for :meth:`~BufferedCamera.read`, every
-frame in order) and into the "latest" slot (for :meth:`~BufferedCamera.read_latest`).
+Every camera (:class:`~beadsight.devices.opencv.OpenCVCamera`,
+:class:`~beadsight.devices.virtual.VirtualCamera` and its players) is a
+:class:`BufferedCamera`: one reader thread per camera captures frames; each gets its
+capture timestamps (monotonic and wall clock, taken as the capture returns; the wall
+clock one made strictly increasing) and a capture index, and goes into a bounded queue
+(for :meth:`~BufferedCamera.read` and :meth:`~BufferedCamera.async_read`) and into the
+"latest" slot (for :meth:`~BufferedCamera.read_latest`). No read hands out a frame twice.
+
+Pacing is an option of the camera, not a kind of camera: with ``realtime`` a video file
+or played frames come at the camera's fps on its clock (host time, or a virtual rig's
+simulated time), like a live camera; a camera that falls behind runs slower rather than
+bursting to catch up. Without it they come as fast as the consumer takes them.
 
 Frame accounting (:attr:`BufferedCamera.stats`):
 
 * ``dropped``: frames the *device* lost, from timestamp gaps: a gap ``dt > 1.5 / fps``
   between consecutive captures counts ``max(1, round(dt * fps) - 1)`` frames (live
-  devices only; a file cannot lose frames).
-* ``overflowed``: frames pushed out of the full queue because ``read`` fell behind
-  (live devices; files wait for the reader instead).
-* ``skipped``: frames ``read_latest`` passed over on purpose to return the newest.
+  cameras only; a file cannot lose frames).
+* ``overflowed``: frames pushed out of the full queue because the reads fell behind
+  (live cameras; files wait for the reader instead).
+* ``skipped``: frames ``read_latest`` / ``async_read`` passed over on purpose to return
+  the newest.
 
-When capture fails (end of file, camera unplugged) the reader stops; ``read`` returns the
-frames still queued, then raises :class:`CameraDisconnectedError`.
+When capture fails (end of file, camera unplugged) the reader stops; reads return the
+frames still queued, then raise :class:`CameraEndedError` (the normal end of a finite
+camera) or :class:`CameraDisconnectedError` (a live camera was lost). A reconnect
+starts a fresh stream whose indices continue from the last.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import os
 import threading
 import time
 from collections import deque
@@ -33,11 +43,15 @@ import numpy as np
 from beadsight.devices.base import (
     CameraConfigError,
     CameraDisconnectedError,
+    CameraEndedError,
+    DeviceContext,
     DeviceNotConnectedError,
     DeviceTimeoutError,
     Frame,
     host_now,
 )
+from beadsight.devices.clock import SimClock
+from beadsight.devices.reader import ReaderThread
 
 logger = logging.getLogger(__name__)
 
@@ -46,13 +60,16 @@ DEFAULT_HEIGHT_PX = 1024
 DEFAULT_FPS = 30.0
 DEFAULT_QUEUE_FRAMES = 64  # ~2 s at 30 fps; read() must keep up on average
 GAP_FACTOR = 1.5  # a capture gap above this many frame periods means frames were lost
-FPS_TOLERANCE = 0.05  # relative fps mismatch accepted when verifying the device
 MIN_READ_TIMEOUT_S = 2.0  # default read timeout: max(this, 10 frame periods)
+MIN_TIMESTAMP_STEP_S = 1e-6  # consecutive t_unix stamps differ by at least this
+QUEUE_FULL_POLL_S = 0.1  # a file reader waiting on a full queue checks for close this often
+
+Captured = tuple[np.ndarray, float]  # (image, reference_force_n) as a capture hook returns it
 
 
 @dataclass(frozen=True)
 class CameraStats:
-    """Frame counters since connect (see the module docstring)."""
+    """Frame counters since the camera object was made (see the module docstring)."""
 
     captured: int
     delivered: int
@@ -76,21 +93,72 @@ def verify_mode(
         )
 
 
-class BufferedCamera:
-    """Base class: background capture, ordered queue, newest frame, drop accounting.
+def check_image(name: str, image: object) -> np.ndarray:
+    """``image`` as an (H, W, 3) uint8 array, or ValueError naming the camera and what came."""
+    array = np.asarray(image)
+    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] != 3:
+        raise ValueError(f"{name}: frames must be (H, W, 3) uint8, got {array.dtype} {array.shape}")
+    return array
 
-    Subclasses implement ``_open() -> (width, height, fps)``, ``_grab() -> image or None``
-    (None: the stream ended; set ``self._end_reason``) and ``_release()``.
 
-    live: True for devices (count timestamp gaps, drop the oldest frame when the queue is
-    full); False for files (no gap accounting, the reader waits when the queue is full).
+class Pacer:
+    """Releases one frame per period of ``fps`` on ``clock`` (host or simulated time).
+
+    A frame more than one period late re-anchors the schedule (the camera runs slower
+    instead of bursting); ``delay_s`` postpones the schedule (a stalled camera).
     """
 
-    def __init__(self, name: str, *, queue_frames: int = DEFAULT_QUEUE_FRAMES, live: bool = True):
+    def __init__(self, fps: float, clock: SimClock):
+        self.period_s = 1.0 / fps
+        self.clock = clock
+        self._next_t: float | None = None
+
+    def wait(self, stop: threading.Event, delay_s: float = 0.0) -> bool:
+        """Wait for the next frame's time; False if ``stop`` was set first."""
+        now = self.clock.now()
+        if self._next_t is None:
+            self._next_t = now
+        self._next_t = max(self._next_t, now - self.period_s) + delay_s
+        if not self.clock.wait_until(self._next_t, stop):
+            return False
+        self._next_t += self.period_s
+        return True
+
+
+class BufferedCamera(DeviceContext):
+    """Base class of every camera: see the module docstring and :class:`~beadsight.devices.Camera`.
+
+    Subclasses implement ``_open() -> fps`` (open the source; fps in frames per *host*
+    second), ``_grab() -> (image, reference_force_n) or None`` (None: the stream ended,
+    after calling :meth:`_end`), ``_release()``, and may override ``_mode_hint()``,
+    ``_disconnect_hint()`` and ``_pace_delay_s()``. ``_grab`` is called once in
+    :meth:`connect` (to verify the frame size) and then on the reader thread.
+
+    requested: (width, height) px to verify the frames against (None: any).
+    live: True for live cameras (count timestamp gaps, drop the oldest frame when the
+    queue is full); False for files (no gap accounting, the reader waits when the queue
+    is full). paced: hold each frame until its time at ``fps`` on ``clock``.
+    """
+
+    channel_order = "BGR"
+
+    def __init__(
+        self,
+        name: str,
+        requested: tuple[int | None, int | None] = (None, None),
+        *,
+        queue_frames: int = DEFAULT_QUEUE_FRAMES,
+        live: bool = True,
+        paced: bool = False,
+        clock: SimClock | None = None,
+    ):
         if queue_frames < 1:
             raise ValueError(f"queue_frames must be >= 1, got {queue_frames}")
         self.name = name
+        self.requested = requested
         self.live = live
+        self.paced = paced
+        self.clock = clock if clock is not None else SimClock()
         self.width = 0
         self.height = 0
         self.fps = DEFAULT_FPS
@@ -98,58 +166,93 @@ class BufferedCamera:
         self._queue_frames = int(queue_frames)
         self._cond = threading.Condition()
         self._latest: Frame | None = None
-        self._returned_index = -1  # newest index handed out by read / read_latest
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._returned_index = -1  # newest index handed out by any read
+        self._reader: ReaderThread | None = None
+        self._stop = threading.Event()  # the running reader's stop event
+        self._first: Captured | None = None  # grabbed by connect(), delivered first
         self._ended = False
+        self._finite_end = False
         self._end_reason = "stopped delivering frames"
         self._captured = self._delivered = self._dropped = self._overflowed = self._skipped = 0
         self._last_capture_mono: float | None = None
+        self._last_t_unix = -math.inf
 
     # --- subclass hooks -----------------------------------------------------------------
-    def _open(self) -> tuple[int, int, float]:
+    def _open(self) -> float:
         raise NotImplementedError
 
-    def _grab(self) -> np.ndarray | None:
+    def _grab(self) -> Captured | None:
         raise NotImplementedError
 
     def _release(self) -> None:
         pass
 
+    def _mode_hint(self) -> str:
+        return "pass width=None, height=None to accept the frames' size"
+
+    def _disconnect_hint(self) -> str | None:
+        return None
+
+    def _pace_delay_s(self) -> float:
+        """Extra wait before the next paced frame (clock seconds); a stall fault."""
+        return 0.0
+
+    def _end(self, reason: str, *, finite: bool = False) -> None:
+        """Record why the stream ends (``finite``: the normal end of a file); returns None
+        so a ``_grab`` can ``return self._end(...)``."""
+        self._end_reason = reason
+        self._finite_end = finite
+
     # --- lifecycle --------------------------------------------------------------------
     def connect(self) -> None:
-        """Open and verify the source, then start the reader thread."""
-        if self._thread is not None:
+        """Open the source, check its first frame's size, then start the reader thread.
+
+        Does nothing once connected, even after the stream ended (the frames still
+        queued stay readable): ``close()`` then ``connect()`` to reconnect.
+        """
+        if self._reader is not None:
             return
-        self.width, self.height, self.fps = self._open()
+        self._finite_end = False
+        fps = self._open()
+        try:
+            first = self._grab()
+            if first is None:
+                raise DeviceNotConnectedError(
+                    self.name, "opened but delivered no frame", self._disconnect_hint()
+                )
+            image = check_image(self.name, first[0])
+            height, width = image.shape[:2]
+            verify_mode(self.name, self.requested, (width, height), self._mode_hint())
+        except BaseException:
+            self._release()
+            raise
+        self.width, self.height, self.fps = width, height, fps
+        self._first = (image, first[1])
         with self._cond:  # a reconnect starts a fresh stream; indices keep counting up
             self._queue.clear()
             self._latest = None
             self._last_capture_mono = None
-        self._stop.clear()
-        self._ended = False
-        self._thread = threading.Thread(target=self._run, name=f"{self.name} reader", daemon=True)
-        self._thread.start()
+            self._ended = False
+        self._reader = ReaderThread(f"{self.name} reader", self._run)
+        self._stop = self._reader.stop_event
+        self._reader.start()
         logger.info("%s: %dx%d at %.3g fps", self.name, self.width, self.height, self.fps)
 
     def close(self) -> None:
         """Stop the reader and release the device. Safe to call twice."""
+        reader, self._reader = self._reader, None
         self._stop.set()
         with self._cond:
             if not self._ended:
-                self._end_reason = "was closed"
+                self._end("was closed")
             self._cond.notify_all()
-        thread, self._thread = self._thread, None
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout=5.0)
+        if reader is not None:
+            reader.stop()
         self._release()
 
-    def __enter__(self):
-        self.connect()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+    @property
+    def connected(self) -> bool:
+        return self._reader is not None
 
     @property
     def stats(self) -> CameraStats:
@@ -165,25 +268,36 @@ class BufferedCamera:
 
     # --- reading ----------------------------------------------------------------------
     def read(self, timeout_s: float | None = None) -> Frame:
-        """The next frame in capture order (waits up to ``timeout_s``).
-
-        Raises CameraDisconnectedError once the stream ended and the queue is empty,
-        DeviceTimeoutError when no frame arrives in time.
-        """
+        """The next frame in capture order (waits up to ``timeout_s``)."""
         deadline = time.monotonic() + self._timeout(timeout_s)
         with self._cond:
             while not self._queue:
                 self._wait(deadline, timeout_s)
-            frame = self._queue.popleft()
-            self._returned_index = frame.index
-            self._delivered += 1
-            self._cond.notify_all()
-            return frame
+            return self._hand_out([self._queue.popleft()])[0]
+
+    def async_read(
+        self, timeout_s: float | None = None, max_frames: int | None = None
+    ) -> list[Frame]:
+        """Every frame captured since the last read, oldest first (waits up to
+        ``timeout_s`` for one); only the newest ``max_frames`` when more came (the older
+        ones are skipped and counted)."""
+        if max_frames is not None and max_frames < 1:
+            raise ValueError(f"max_frames must be >= 1, got {max_frames}")
+        deadline = time.monotonic() + self._timeout(timeout_s)
+        with self._cond:
+            while not self._queue:
+                self._wait(deadline, timeout_s)
+            frames = list(self._queue)
+            self._queue.clear()
+            if max_frames is not None and len(frames) > max_frames:
+                self._skipped += len(frames) - max_frames
+                frames = frames[-max_frames:]
+            return self._hand_out(frames)
 
     def read_latest(self, timeout_s: float | None = None) -> Frame:
-        """The newest frame, never one returned before: waits for a new one if needed.
+        """The newest frame, never one handed out before: waits for a new one if needed.
 
-        Older queued frames are discarded (counted as ``skipped``). Raises like :meth:`read`.
+        Older queued frames are discarded (counted as ``skipped``).
         """
         deadline = time.monotonic() + self._timeout(timeout_s)
         with self._cond:
@@ -192,10 +306,14 @@ class BufferedCamera:
             frame = self._latest
             self._skipped += sum(1 for f in self._queue if f.index < frame.index)
             self._queue.clear()
-            self._returned_index = frame.index
-            self._delivered += 1
-            self._cond.notify_all()
-            return frame
+            return self._hand_out([frame])[0]
+
+    def _hand_out(self, frames: list[Frame]) -> list[Frame]:
+        """Count ``frames`` (condition held) as delivered and wake a waiting file reader."""
+        self._returned_index = frames[-1].index
+        self._delivered += len(frames)
+        self._cond.notify_all()
+        return frames
 
     def _timeout(self, timeout_s: float | None) -> float:
         if timeout_s is not None:
@@ -205,12 +323,13 @@ class BufferedCamera:
     def _wait(self, deadline: float, timeout_s: float | None) -> None:
         """Wait on the condition (held) for news; raise if the stream is over or too late."""
         if self._ended:
-            raise CameraDisconnectedError(
+            error = CameraEndedError if self._finite_end else CameraDisconnectedError
+            raise error(
                 self.name,
                 f"{self._end_reason} after {self._captured} frames",
-                self._disconnect_hint(),
+                None if self._finite_end else self._disconnect_hint(),
             )
-        if self._thread is None:
+        if self._reader is None:
             raise DeviceNotConnectedError(
                 self.name, "not connected", "call connect() or use 'with'"
             )
@@ -223,38 +342,44 @@ class BufferedCamera:
             )
         self._cond.wait(remaining)
 
-    def _disconnect_hint(self) -> str | None:
-        return None
-
     # --- reader thread ------------------------------------------------------------------
-    def _run(self) -> None:
+    def _run(self, stop: threading.Event) -> None:
+        pacer = Pacer(self.fps / self.clock.time_scale, self.clock) if self.paced else None
         try:
-            while not self._stop.is_set():
-                image = self._grab()
-                t_unix, t_mono = host_now()
-                if image is None:
+            while not stop.is_set():
+                if pacer is not None and not pacer.wait(stop, self._pace_delay_s()):
                     break
-                self._push(image, t_unix, t_mono)
+                if self._first is not None:  # the frame connect() grabbed to check the size
+                    captured, self._first = self._first, None
+                else:
+                    captured = self._grab()
+                t_unix, t_mono = host_now()
+                if captured is None or stop.is_set():
+                    break
+                self._push(check_image(self.name, captured[0]), captured[1], t_unix, t_mono)
         except Exception as e:  # noqa: BLE001 - a backend failure ends the stream, with its reason
             logger.exception("%s: capture failed", self.name)
-            self._end_reason = f"capture failed ({e})"
+            self._end(f"capture failed ({e})")
         finally:
             with self._cond:
                 self._ended = True
                 self._cond.notify_all()
-            if not self._stop.is_set():
+            if not stop.is_set():
                 logger.warning(
                     "%s: %s after %d frames", self.name, self._end_reason, self._captured
                 )
 
-    def _push(self, image: np.ndarray, t_unix: float, t_mono: float) -> None:
+    def _push(self, image: np.ndarray, force_n: float, t_unix: float, t_mono: float) -> None:
         with self._cond:
             if self.live:
                 self._count_gap(t_mono)
             else:
                 while len(self._queue) >= self._queue_frames and not self._stop.is_set():
-                    self._cond.wait(0.1)
-            frame = Frame(image=image, index=self._captured, t_mono=t_mono, t_unix=t_unix)
+                    self._cond.wait(QUEUE_FULL_POLL_S)
+            self._last_t_unix = max(t_unix, self._last_t_unix + MIN_TIMESTAMP_STEP_S)
+            frame = Frame(
+                image, self._captured, t_mono, self._last_t_unix, self.channel_order, force_n
+            )
             self._captured += 1
             if len(self._queue) >= self._queue_frames:
                 self._queue.popleft()
@@ -276,153 +401,11 @@ class BufferedCamera:
             )
 
 
-class OpenCVCamera(BufferedCamera):
-    """A camera (index, e.g. 0 for /dev/video0) or a video file, read with OpenCV.
+def __getattr__(name: str):
+    if name == "OpenCVCamera":  # it moved to beadsight.devices.opencv
+        from beadsight._compat import deprecated
+        from beadsight.devices.opencv import OpenCVCamera
 
-    width, height: requested frame size in px; verified against the frames actually
-    delivered (CameraConfigError names both); None accepts whatever comes (handy for
-    files). fps: requested rate for devices (verified from the driver's report); files
-    play at their own fps. fourcc: pixel format asked of devices ("MJPG" is needed for
-    1280x1024 at 30 fps over USB 2). realtime: files only; True paces frames at the file's
-    fps like a live camera, False reads as fast as the consumer takes them.
-    """
-
-    def __init__(
-        self,
-        source: int | str,
-        width: int | None = DEFAULT_WIDTH_PX,
-        height: int | None = DEFAULT_HEIGHT_PX,
-        fps: float = DEFAULT_FPS,
-        fourcc: str = "MJPG",
-        *,
-        realtime: bool = True,
-        queue_frames: int = DEFAULT_QUEUE_FRAMES,
-        backend: int | None = None,
-        name: str | None = None,
-    ):
-        if isinstance(source, str) and source.strip().isdigit():
-            source = int(source)
-        self.source = source
-        self.is_file = isinstance(source, str)
-        if len(fourcc) != 4:
-            raise ValueError(f"fourcc must be 4 characters, got {fourcc!r}")
-        if not fps > 0:
-            raise ValueError(f"fps must be > 0, got {fps}")
-        default_name = f"camera {os.path.basename(source)}" if self.is_file else f"camera {source}"
-        super().__init__(name or default_name, queue_frames=queue_frames, live=not self.is_file)
-        self.requested = (width, height)
-        self.requested_fps = float(fps)
-        self.fourcc = fourcc
-        self.realtime = realtime
-        self.backend = backend
-        self._cap = None
-        self._first: np.ndarray | None = None
-        self._t_start: float | None = None
-        self._file_index = 0
-
-    def _open(self) -> tuple[int, int, float]:
-        import cv2
-
-        if self.is_file and not os.path.isfile(self.source):  # type: ignore[arg-type]
-            raise DeviceNotConnectedError(self.name, f"video file {self.source} does not exist")
-        cap = (
-            cv2.VideoCapture(self.source)
-            if self.backend is None
-            else cv2.VideoCapture(self.source, self.backend)
-        )
-        if not cap.isOpened():
-            cap.release()
-            raise DeviceNotConnectedError(self.name, "could not be opened", self._disconnect_hint())
-        self._cap = cap
-        try:
-            if not self.is_file:
-                self._configure(cap, cv2)
-            ok, first = cap.read()
-            if not ok or first is None:
-                raise DeviceNotConnectedError(
-                    self.name, "opened but delivered no frame", self._disconnect_hint()
-                )
-            height, width = first.shape[:2]
-            verify_mode(self.name, self.requested, (width, height), self._mode_hint())
-            fps = self._verified_fps(cap, cv2)
-        except BaseException:
-            self._release()
-            raise
-        self._first = first
-        self._file_index = 0
-        self._t_start = None
-        return width, height, fps
-
-    def _configure(self, cap, cv2) -> None:
-        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.fourcc))
-        width, height = self.requested
-        if width is not None:
-            cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
-        if height is not None:
-            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
-        cap.set(cv2.CAP_PROP_FPS, self.requested_fps)
-        reported = int(cap.get(cv2.CAP_PROP_FOURCC))
-        got = "".join(chr((reported >> (8 * i)) & 0xFF) for i in range(4))
-        if reported and got != self.fourcc:
-            logger.warning(
-                "%s: asked for %s pixels, driver reports %r", self.name, self.fourcc, got
-            )
-
-    def _verified_fps(self, cap, cv2) -> float:
-        reported = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        if self.is_file:
-            if not reported > 0 or not math.isfinite(reported):
-                logger.warning(
-                    "%s: the file reports no fps; assuming %g", self.name, self.requested_fps
-                )
-                return self.requested_fps
-            return reported
-        if reported > 0 and abs(reported - self.requested_fps) > FPS_TOLERANCE * self.requested_fps:
-            raise CameraConfigError(
-                self.name,
-                f"runs at {reported:g} fps but {self.requested_fps:g} fps was requested "
-                f"(at {self.requested[0]}x{self.requested[1]} {self.fourcc})",
-                self._mode_hint(),
-            )
-        return reported if reported > 0 else self.requested_fps
-
-    def _grab(self) -> np.ndarray | None:
-        if self._first is not None:  # the frame read while verifying the mode
-            image, self._first = self._first, None
-        else:
-            ok, image = self._cap.read() if self._cap is not None else (False, None)
-            if not ok or image is None:
-                self._end_reason = (
-                    "end of file" if self.is_file else "stopped delivering frames (unplugged?)"
-                )
-                return None
-        if self.is_file and self.realtime:
-            self._pace()
-        self._file_index += 1
-        return image
-
-    def _pace(self) -> None:
-        """Hold a file frame until its time at the file's fps (like a live camera)."""
-        if self._t_start is None:
-            self._t_start = time.monotonic()
-        due = self._t_start + self._file_index / self.fps
-        delay = due - time.monotonic()
-        if delay > 0:
-            self._stop.wait(delay)
-
-    def _release(self) -> None:
-        cap, self._cap = self._cap, None
-        if cap is not None:
-            cap.release()
-
-    def _mode_hint(self) -> str:
-        if self.is_file:
-            return "pass width=None, height=None to accept the file's size"
-        return (
-            f"list the supported modes with: v4l2-ctl -d /dev/video{self.source} --list-formats-ext"
-        )
-
-    def _disconnect_hint(self) -> str | None:
-        if self.is_file:
-            return None
-        return "is it plugged in? ls /dev/video*; is another program (cheese, OBS, another beadsight) using it?"
+        deprecated("beadsight.devices.camera.OpenCVCamera", "beadsight.devices.OpenCVCamera")
+        return OpenCVCamera
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -16,10 +16,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from beadsight.config import ConfigError, _Serializable
+from beadsight.config import REFERENCE_CENTRE_XY_MM, ConfigError, _Serializable
 from beadsight.devices.base import SafetyError
 
-REFERENCE_CENTRE_XY_MM = (151.8, 108.9)  # printer XY of the sensor centre (reference rig)
 _EPS_MM = 1e-6  # tolerance for points exactly on the boundary
 
 Point = tuple[float, float, float]

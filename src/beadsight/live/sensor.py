@@ -9,10 +9,11 @@ the camera rate, for robot code, the web viewer, the network stream and recorder
         for reading in sensor.readings():  # beadsight.inference.predictor.Reading, newest first-come
             print(reading.timestamp_s, reading.force_n, reading.cop_mm)
 
-Threads. The source runs its own reader thread that keeps only the newest frame with
-its capture timestamp (a slow consumer skips frames; capture never waits for
-inference). :class:`LiveSensor` runs one sensing thread: newest frame -> preprocessing
--> :class:`~beadsight.inference.predictor.PressurePredictor` -> listeners. Listeners (callbacks,
+Threads. The source is a :class:`beadsight.devices.Camera` with its own reader thread
+that keeps the frames with their capture timestamps (a consumer more than a window
+behind skips frames; capture never waits for inference). :class:`LiveSensor` runs one
+sensing thread: newest frame -> preprocessing ->
+:class:`~beadsight.inference.predictor.PressurePredictor` -> listeners. Listeners (callbacks,
 ``readings()`` iterators, the viewer, the stream server, recorders) are called on the
 sensing thread and must return quickly; the ones shipped here only copy a reference into
 their own queue and do their work (encoding, sending, writing) on their own threads.
@@ -41,16 +42,17 @@ from typing import Any, Protocol
 import numpy as np
 
 from beadsight.checkpoint import PressureModel, load_checkpoint, shipped_model_path
+from beadsight.devices.base import (
+    Camera,
+    CameraDisconnectedError,
+    CameraEndedError,
+    DeviceNotConnectedError,
+    DeviceTimeoutError,
+    Frame,
+)
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.inference.predictor import PressurePredictor, Reading
-from beadsight.live.sources import (
-    FrameSource,
-    SourceDisconnected,
-    SourceEnded,
-    SourceFrame,
-    frame_converter,
-    open_source,
-)
+from beadsight.live.sources import frame_converter, open_camera
 
 logger = logging.getLogger(__name__)
 
@@ -342,8 +344,8 @@ class LiveSensor:
     """Camera/video/simulator -> pressure readings at the camera rate, on a background thread.
 
     checkpoint: a checkpoint path or a loaded PressureModel (default: the shipped sim
-        model). source: camera index (int or digits), video file path, ``"sim"``, or a
-        :class:`~beadsight.live.sources.FrameSource`.
+        model). source: camera index (int or digits) or device path, video file path,
+        ``"sim"``, or a :class:`beadsight.devices.Camera` (not yet connected).
     backend, precision: passed to :class:`~beadsight.inference.predictor.PressurePredictor` (a
         backend that cannot run this checkpoint is refused by :meth:`start`).
     preprocess: None (automatic: frames at the model's size are used as they are, raw
@@ -366,7 +368,7 @@ class LiveSensor:
     def __init__(
         self,
         checkpoint: str | Path | PressureModel | None = None,
-        source: int | str | Path | FrameSource = "sim",
+        source: int | str | Path | Camera = "sim",
         backend: Any = "auto",
         precision: str = "auto",
         *,
@@ -397,15 +399,15 @@ class LiveSensor:
         self._backoff_s = reconnect_backoff_s
         self.model: PressureModel | None = None
         self.predictor: PressurePredictor | None = None
-        self.source: FrameSource | None = None
-        self._convert: Callable[[SourceFrame], np.ndarray] | None = None
+        self.source: Camera | None = None
+        self._convert: Callable[[Frame], np.ndarray] | None = None
         self._frame_hw: tuple[int, int] | None = None
         self._listeners: tuple[LiveListener, ...] = ()
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
-        self._first: SourceFrame | None = None
+        self._first: Frame | None = None
         self._error: BaseException | None = None
         self._recorder: _Recorder | None = None
         self._meter = _RateMeter(stale_after_s=no_signal_after_s)
@@ -430,7 +432,7 @@ class LiveSensor:
             model, self._backend, self._precision, **self._predictor_options
         )
         try:
-            self.source = open_source(
+            self.source = open_camera(
                 self._source_spec,
                 image_size=model.image_size,
                 fps=self._fps,
@@ -438,13 +440,8 @@ class LiveSensor:
                 seed=self._seed,
                 any_size=self._preprocess_spec is not None,
             )
-            self.source.open()
-            first = self.source.read_newest(-1, self._first_frame_timeout_s)
-            if first is None:
-                raise BeadSightError(
-                    f"source {self.source.name}: no frame within "
-                    f"{self._first_frame_timeout_s:g} s of opening it"
-                )
+            self.source.connect()
+            first = self.source.read_latest(self._first_frame_timeout_s)
             self._convert = frame_converter(
                 first, self.source.name, model.image_size, self._preprocess_spec
             )
@@ -650,15 +647,15 @@ class LiveSensor:
         while not self._stop.is_set():
             if not batch:
                 try:
-                    batch = source.read_new(last_index, self._no_signal_after_s, window)
-                except SourceDisconnected as e:
+                    batch = source.async_read(self._no_signal_after_s, window)
+                except CameraEndedError as e:
+                    self._set_status("ended", str(e))
+                    return
+                except CameraDisconnectedError as e:
                     first = self._reconnect(e)
                     batch, last_index = ([first] if first is not None else []), -1
                     continue
-                except SourceEnded as e:
-                    self._set_status("ended", str(e) or f"source {source.name} ended")
-                    return
-                if not batch:
+                except DeviceTimeoutError:
                     self._set_status(
                         "no_signal",
                         f"no frame from {source.name} for {self._no_signal_after_s:g} s",
@@ -675,19 +672,19 @@ class LiveSensor:
                 self._set_status("ended", f"stopped after {self.max_readings} readings")
                 return
 
-    def _accept_time(self, frame: SourceFrame) -> bool:
+    def _accept_time(self, frame: Frame) -> bool:
         if frame.timestamp_s <= self._last_timestamp:
             logger.warning("live: frame %d has a non-increasing timestamp; skipped", frame.index)
             return False
         self._last_timestamp = frame.timestamp_s
         return True
 
-    def _add(self, frame: SourceFrame) -> None:
+    def _add(self, frame: Frame) -> None:
         """Buffer a frame in the predictor's window without running the model."""
         if self._accept_time(frame):
             self.predictor.add_frame(self._convert(frame), frame.timestamp_s)
 
-    def _process(self, frame: SourceFrame) -> None:
+    def _process(self, frame: Frame) -> None:
         """Run the model on the window ending with ``frame``; publish the reading."""
         if not self._accept_time(frame):
             return
@@ -705,25 +702,24 @@ class LiveSensor:
         for listener in self._listeners:
             self._call(listener.push, update)
 
-    def _reconnect(self, error: BaseException) -> SourceFrame | None:
-        """Reopen a lost source with exponential backoff; None if stopped meanwhile."""
+    def _reconnect(self, error: BaseException) -> Frame | None:
+        """Reconnect a lost camera with exponential backoff; None if stopped meanwhile."""
         delay, longest = self._backoff_s
         attempt = 0
         while True:
             attempt += 1
+            reason = getattr(error, "detail", error)  # without the camera's name again
             self._set_status(
                 "no_signal",
-                f"{self.source.name}: {error}; reopening in {delay:.1f} s (attempt {attempt})",
+                f"{self.source.name}: {reason}; reopening in {delay:.1f} s (attempt {attempt})",
             )
             if self._stop.wait(delay):
                 return None
             try:
                 self.source.close()
-                self.source.open()
-                first = self.source.read_newest(-1, self._first_frame_timeout_s)
-                if first is None:
-                    raise SourceDisconnected("no frame after reopening")
-            except SourceDisconnected as e:
+                self.source.connect()
+                first = self.source.read_latest(self._first_frame_timeout_s)
+            except (DeviceNotConnectedError, DeviceTimeoutError) as e:
                 error, delay = e, min(2 * delay, longest)
                 continue
             if first.image.shape[:2] != self._frame_hw:

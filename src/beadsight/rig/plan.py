@@ -1,9 +1,11 @@
 """Press plans: where and how deep the finger presses, in order, seeded.
 
-A :class:`PressPlan` (from code, a TOML file or a simulated rig's settings) lists its
-:class:`PressTarget` objects with :meth:`PressPlan.targets`: calibration presses at the
-centre first, then presses at random (uniform, seeded) or grid locations
-(``PATTERNS``), like the reference (reference-facts section 5).
+A :class:`PressPlan` (a frozen dataclass, from code, a TOML file or a simulated rig's
+settings) lists its :class:`PressTarget` objects with :meth:`PressPlan.targets`:
+calibration presses at the centre first, then presses at random (uniform, seeded) or
+grid locations (``PATTERNS``), like the reference (reference-facts section 5).
+:func:`envelope_for` gives the safety envelope around a plan; :func:`check_plan` refuses
+a plan that leaves a printer's envelope, before anything moves.
 """
 
 from __future__ import annotations
@@ -16,9 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from beadsight.config import ConfigError, _Serializable, load_toml
+from beadsight.config import REFERENCE_CENTRE_XY_MM, ConfigError, _Serializable, load_toml
+from beadsight.devices.base import Printer, SafetyError
+from beadsight.devices.envelope import SafetyEnvelope
 
-REFERENCE_CENTRE_XY_MM = (151.8, 108.9)  # printer XY of the sensor centre (reference rig)
 PATTERNS = ("random", "grid")
 
 
@@ -151,3 +154,29 @@ class PressPlan(_Serializable):
         }
         kwargs.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**kwargs)
+
+
+def envelope_for(plan: PressPlan) -> SafetyEnvelope:
+    """A safety envelope around the plan's sensor centre: the default margins (floor
+    126.5 mm, clear 135 mm, +-15 mm) unless the plan goes beyond them."""
+    default = SafetyEnvelope(centre_xy_mm=plan.centre_xy_mm)
+    return SafetyEnvelope(
+        centre_xy_mm=plan.centre_xy_mm,
+        xy_half_range_mm=max(default.xy_half_range_mm, plan.range_mm + 1.0),
+        z_floor_mm=min(default.z_floor_mm, plan.z_press_mm[0] - 0.5),
+        z_clear_mm=min(default.z_clear_mm, plan.z_clear_mm),
+    )
+
+
+def check_plan(printer: Printer, plan: PressPlan, targets: list[PressTarget]) -> None:
+    """ConfigError naming the first press whose path leaves the printer's safety envelope."""
+    envelope = getattr(printer, "envelope", None)
+    if envelope is None:
+        return
+    name = getattr(printer, "name", "printer")
+    for t in targets:
+        for z in (plan.z_clear_mm, t.z_mm):
+            try:
+                envelope.check_point((t.x_mm, t.y_mm, z), device=name)
+            except SafetyError as e:
+                raise ConfigError(f"press plan, press {t.index}: {e.detail}") from None

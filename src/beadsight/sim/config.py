@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from beadsight.config import ConfigError, SensorGeometry, _Serializable
+from beadsight.config import REFERENCE_CENTRE_XY_MM, ConfigError, SensorGeometry, _Serializable
 
 # Pale, translucent tints (linear RGB multipliers) of the hydrogel beads. Water beads
 # are sold in mixed colours; a bag of them is a handful of tints.
@@ -77,7 +77,7 @@ class SimConfig(_Serializable):
 
     # --- rig: printer (reference-facts section 5) ------------------------------------
     surface_z_mm: float = 129.0  # printer Z at which the finger touches the pouch
-    centre_xy_mm: tuple[float, float] = (151.8, 108.9)  # printer XY of the sensor centre
+    centre_xy_mm: tuple[float, float] = REFERENCE_CENTRE_XY_MM  # printer XY of the sensor centre
     clear_z_mm: float = 137.5  # printer Z between presses
     press_z_range_mm: tuple[float, float] = (127.0, 128.0)  # press depth Z, uniform
     finger_radius_mm: float = 6.25  # flat cylindrical finger, 12.5 mm diameter

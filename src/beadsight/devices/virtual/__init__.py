@@ -1,18 +1,40 @@
-"""Virtual twins of the rig's devices, speaking the real protocols on pseudo-terminals.
+"""Virtual twins of the rig's devices and of the sensor camera.
 
 * :class:`VirtualPrinter` - Marlin G-code with motion in simulated time.
 * :class:`VirtualScale` - the HX711 scale (beadsight firmware or reference sketch).
-* :class:`VirtualCamera` - frames from a render function, OpenCVCamera's interface.
-* :class:`VirtualRig` - all three driven by one simulated pouch (``beadsight.sim``).
+* :class:`VirtualCamera` - frames from a render function, the real cameras' interface;
+  :class:`PlaybackCamera` plays given frames, :class:`SimCamera` the simulated sensor.
+* :class:`VirtualRig` - printer, scale and camera driven by one simulated pouch
+  (``beadsight.sim``).
 * :class:`SimClock` - simulated time, optionally faster than real time.
 
-Linux/macOS only (they use ``pty``).
+The printer, scale and rig are Linux/macOS only (they use ``pty``); the cameras run
+anywhere. Names are imported on first use, so importing a camera does not need ``pty``.
 """
 
-from beadsight.devices.virtual.camera import VirtualCamera
-from beadsight.devices.virtual.clock import SimClock
-from beadsight.devices.virtual.printer import VirtualPrinter
-from beadsight.devices.virtual.rig import VirtualRig
-from beadsight.devices.virtual.scale import VirtualScale
+from __future__ import annotations
 
-__all__ = ["SimClock", "VirtualCamera", "VirtualPrinter", "VirtualRig", "VirtualScale"]
+import importlib
+from typing import Any
+
+_WHERE = {
+    "PlaybackCamera": "beadsight.devices.virtual.camera",
+    "SimCamera": "beadsight.devices.virtual.camera",
+    "VirtualCamera": "beadsight.devices.virtual.camera",
+    "SimClock": "beadsight.devices.clock",
+    "VirtualPrinter": "beadsight.devices.virtual.printer",
+    "VirtualRig": "beadsight.devices.virtual.rig",
+    "VirtualScale": "beadsight.devices.virtual.scale",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(_WHERE[name]), name)
+
+
+def __dir__() -> list[str]:
+    return __all__

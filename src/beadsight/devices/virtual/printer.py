@@ -33,8 +33,8 @@ import threading
 from collections import deque
 from dataclasses import dataclass
 
+from beadsight.devices.clock import SimClock
 from beadsight.devices.marlin import checksum
-from beadsight.devices.virtual.clock import SimClock
 from beadsight.devices.virtual.pty_device import PtyDevice
 
 logger = logging.getLogger(__name__)

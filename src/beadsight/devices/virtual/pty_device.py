@@ -20,12 +20,14 @@ import select
 import threading
 import tty
 
-from beadsight.devices.virtual.clock import SimClock
+from beadsight.devices.clock import SimClock
+from beadsight.devices.reader import ReaderThread
 
 logger = logging.getLogger(__name__)
 
 POLL_S = 0.01  # host seconds between checks for input, ticks and host open/close
 MAX_INPUT_LINE = 1024  # bytes; longer input without a newline is dropped
+STOP_WAIT_S = 2.0  # close(): how long to wait for the device thread
 
 
 class PtyDevice:
@@ -43,31 +45,25 @@ class PtyDevice:
         self._master: int | None = master
         self._inbuf = bytearray()
         self._write_lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._reader = ReaderThread(name, self._run)
+        self._stop = self._reader.stop_event
         self.host_open = False
         self.bytes_dropped = 0  # output the host did not read in time (buffer full)
 
     # --- lifecycle --------------------------------------------------------------------
     def start(self) -> PtyDevice:
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
-            self._thread.start()
+        if not self._reader.started and not self._stop.is_set():
+            self._reader.start()
         return self
 
     def close(self) -> None:
         """Stop the thread and remove the port."""
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
+        self._reader.stop(STOP_WAIT_S)
         self._close_master()
 
     def unplug(self) -> None:
         """Simulate pulling the USB cable: the port disappears; the host's reads fail."""
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
-        self._close_master()
+        self.close()
 
     def __enter__(self):
         return self.start()
@@ -114,9 +110,9 @@ class PtyDevice:
         """Called every POLL_S while the host holds the port."""
 
     # --- thread -----------------------------------------------------------------------
-    def _run(self) -> None:
+    def _run(self, stop: threading.Event) -> None:
         try:
-            while not self._stop.is_set():
+            while not stop.is_set():
                 self._poll_once()
         except Exception:  # noqa: BLE001 - a crashed virtual device must say why
             logger.exception("%s crashed", self.name)

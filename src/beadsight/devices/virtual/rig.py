@@ -6,8 +6,8 @@ printer's motion (finger XY = printer XY - ``SimConfig.centre_xy_mm``; depth =
 ``SimConfig.surface_z_mm`` - printer Z), steps the pouch and hands the true force to the
 virtual scale. The virtual camera renders the same pouch, so position, force and frames
 agree. The printer and scale sit on pseudo-terminals and are driven through the real
-drivers; the camera is a :class:`~beadsight.devices.virtual.camera.VirtualCamera` with
-the :class:`~beadsight.devices.camera.OpenCVCamera` interface.
+drivers; the camera is a :class:`~beadsight.devices.virtual.camera.VirtualCamera`, a
+:class:`~beadsight.devices.Camera` like the USB one (collection and live sensing read it).
 
 Example::
 
@@ -32,11 +32,12 @@ import threading
 
 import numpy as np
 
+from beadsight.devices.clock import SimClock
 from beadsight.devices.envelope import SafetyEnvelope
 from beadsight.devices.hx711 import HX711Scale
 from beadsight.devices.marlin import MarlinPrinter
+from beadsight.devices.reader import ReaderThread
 from beadsight.devices.virtual.camera import VirtualCamera
-from beadsight.devices.virtual.clock import SimClock
 from beadsight.devices.virtual.printer import VirtualPrinter
 from beadsight.devices.virtual.scale import VirtualScale
 
@@ -102,8 +103,7 @@ class VirtualRig:
         self.finger_position_mm = (0.0, 0.0, 0.0)  # printer coordinates at the last step
         self._world_lock = threading.RLock()
         self._t = 0.0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._world: ReaderThread | None = None
         home = (0.0, 0.0, self.config.clear_z_mm + HOME_ABOVE_CLEAR_MM)
         self.printer_device = VirtualPrinter(
             clock=self.clock, home_position_mm=home, banner=printer_banner, seed=seed
@@ -128,25 +128,20 @@ class VirtualRig:
     # --- lifecycle --------------------------------------------------------------------
     def start(self) -> VirtualRig:
         """Start the devices and the world thread."""
-        if self._thread is None:
+        if self._world is None:
             self.finger_position_mm = self.printer_device.current_position()
             self._t = self.clock.now()
             self.printer_device.start()
             self.scale_device.start()
-            self._stop.clear()
-            self._thread = threading.Thread(
-                target=self._world_loop, name="virtual rig world", daemon=True
-            )
-            self._thread.start()
+            self._world = ReaderThread("virtual rig world", self._world_loop).start()
         return self
 
     def close(self) -> None:
         """Stop everything: camera reader, world thread, pty devices (ports vanish)."""
         self.camera.close()
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.join(timeout=5.0)
+        world, self._world = self._world, None
+        if world is not None:
+            world.stop()
         self.printer_device.close()
         self.scale_device.close()
 
@@ -203,9 +198,9 @@ class VirtualRig:
                 self.finger_position_mm = (x, y, z)
                 self._t = t_next
 
-    def _world_loop(self) -> None:
+    def _world_loop(self, stop: threading.Event) -> None:
         try:
-            while not self._stop.wait(WORLD_PERIOD_S):
+            while not stop.wait(WORLD_PERIOD_S):
                 self.advance_to(self.clock.now())
         except Exception:  # noqa: BLE001 - the world thread must say why it died
             logger.exception("virtual rig world thread crashed")

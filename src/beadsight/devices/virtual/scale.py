@@ -23,6 +23,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from beadsight.devices.clock import SimClock
 from beadsight.devices.scale_protocol import (
     FIRMWARE_VERSION,
     REFERENCE_COUNTS_PER_GRAM,
@@ -31,7 +32,6 @@ from beadsight.devices.scale_protocol import (
     format_info,
     format_reading,
 )
-from beadsight.devices.virtual.clock import SimClock
 from beadsight.devices.virtual.pty_device import PtyDevice
 from beadsight.geometry import newtons_to_grams
 

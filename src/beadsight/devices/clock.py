@@ -1,9 +1,10 @@
-"""Simulated time shared by the virtual devices of one rig.
+"""Device time: host time, or simulated time shared by the virtual devices of one rig.
 
 Simulated seconds run ``time_scale`` times faster than the host's monotonic clock
 (1.0 = real time, the default; tests use e.g. 10 to press in a tenth of the time). Every
 duration a virtual device models (move time, dwell, sample period, frame period, boot
 delay) is in simulated seconds; the drivers on the other side only ever see host time.
+A ``SimClock()`` at the default scale is the host clock: the cameras pace frames on it.
 """
 
 from __future__ import annotations
@@ -28,10 +29,6 @@ class SimClock:
     def to_real_s(self, sim_s: float) -> float:
         """Host seconds that ``sim_s`` simulated seconds take."""
         return sim_s / self.time_scale
-
-    def mono_at(self, sim_t: float) -> float:
-        """The ``time.monotonic()`` value at simulated time ``sim_t``."""
-        return self._t0_mono + sim_t / self.time_scale
 
     def wait_until(self, sim_t: float, stop: threading.Event) -> bool:
         """Sleep until simulated time ``sim_t``; False if ``stop`` was set first."""

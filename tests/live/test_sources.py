@@ -1,0 +1,127 @@
+"""Live sources are cameras: what a --source names, and the deprecated 0.2 source names."""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+
+import numpy as np
+import pytest
+from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+    BACKEND,
+    WINDOW,
+    no_thread_leaks,
+    press_frames,
+    tiny_model,
+    write_video,
+)
+
+from beadsight.devices import Camera, CameraEndedError, OpenCVCamera
+from beadsight.devices.virtual import PlaybackCamera, SimCamera, VirtualCamera
+from beadsight.live.sensor import LiveSensor
+from beadsight.live.sources import open_camera
+
+
+def test_source_specs_name_cameras(tmp_path):
+    video = tmp_path / "v.avi"
+    sim = open_camera("sim", image_size=64, fps=20, seed=4)
+    assert isinstance(sim, SimCamera) and sim.name == "sim (seed 4)" and sim.requested_fps == 20
+    for spec in (3, "3", " 3 "):
+        camera = open_camera(spec, image_size=64)
+        assert isinstance(camera, OpenCVCamera) and camera.source == 3 and not camera.is_file
+        assert camera.requested == (1280, 1024)  # the reference camera's mode
+    device = open_camera("/dev/video7", image_size=64, fps=60, any_size=True)
+    assert device.source == "/dev/video7" and not device.is_file
+    assert device.requested == (None, None) and device.requested_fps == 60
+    file = open_camera(video, image_size=64, loop=True)
+    assert file.is_file and file.loop and file.requested == (None, None)
+    assert file.name == f"video {video}"
+    mine = VirtualCamera(lambda: np.zeros((8, 8, 3), np.uint8))
+    assert open_camera(mine, image_size=64) is mine
+    with pytest.raises(TypeError, match="source must be a camera index"):
+        open_camera(object(), image_size=64)
+    assert all(isinstance(c, Camera) for c in (sim, device, file, mine))
+
+
+def test_live_reads_a_looping_video_file_through_opencv(tmp_path):
+    frames, _ = press_frames(presses=1, per_press=20)
+    video = write_video(tmp_path / "loop.avi", frames, fps=120)
+    got = []
+    with LiveSensor(tiny_model(), str(video), loop=True, **BACKEND) as sensor:
+        assert isinstance(sensor.source, OpenCVCamera) and sensor.source.loop
+        for reading in sensor.readings():
+            got.append(reading)
+            if len(got) == 30:  # more frames than one pass of the file
+                break
+    assert sensor.error is None
+    assert sensor.source.stats.captured > len(frames)
+    assert np.all(np.diff([r.timestamp_s for r in got]) > 0)
+
+
+class _OldStyleSource:
+    """Written for beadsight 0.2: open / read_new / close, SourceFrame, SourceEnded."""
+
+    def __init__(self, frames):
+        from beadsight.live.sources import FrameSource, SourceEnded, SourceFrame
+
+        class Old(FrameSource):
+            name = "old-style"
+
+            def open(self):
+                self.i = 0
+
+            def read_new(self, after_index, timeout_s, limit=1):
+                if self.i >= len(frames):
+                    raise SourceEnded(f"old-style ended after {self.i} frames")
+                self.i += 1
+                t = time.time() - 10 + self.i / 30
+                return [SourceFrame(frames[self.i - 1], t, self.i - 1, "RGB", float(self.i))]
+
+            def close(self):
+                pass
+
+        self.source = Old()
+
+
+def test_deprecated_source_names_still_work():
+    frames, force = press_frames(presses=1, per_press=25)
+    with pytest.warns(DeprecationWarning) as caught:
+        old = _OldStyleSource(frames).source
+    assert {str(w.message).split(" is ")[0] for w in caught} == {
+        f"beadsight.live.sources.{name}" for name in ("FrameSource", "SourceEnded", "SourceFrame")
+    }
+    assert "use beadsight.devices.CameraEndedError" in " ".join(str(w.message) for w in caught)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        from beadsight.live.sources import PacedSource, SimSource
+
+        paced = PacedSource("paced", lambda: zip(frames, force, strict=True), 30.0)
+        sim = SimSource(64, fps=10, seed=2)
+    assert isinstance(paced, PlaybackCamera) and paced.name == "paced"
+    assert isinstance(sim, SimCamera) and sim.name == "sim (seed 2)"
+    sensor = LiveSensor(tiny_model(), old, **BACKEND).open()
+    stream = sensor.updates()
+    with sensor:
+        updates = list(stream)
+    assert sensor.status.state == "ended" and "old-style ended after 25 frames" in (
+        sensor.status.message
+    )
+    assert len(updates) == len(frames) - WINDOW + 1
+    assert [u.reference_force_n for u in updates] == [float(i + 1) for i in range(WINDOW - 1, 25)]
+
+
+def test_sim_camera_ends_after_its_presses_or_loops():
+    with SimCamera(32, seed=5, presses=1, realtime=False) as cam:
+        frames = []
+        with pytest.raises(CameraEndedError, match=r"sim \(seed 5\): ended after"):
+            while True:
+                frames.extend(cam.async_read(timeout_s=30.0))
+    assert len(frames) > 30 and [f.index for f in frames] == list(range(len(frames)))
+    assert all(math.isfinite(f.reference_force_n) for f in frames)
+    assert max(f.reference_force_n for f in frames) > 0.5  # the press shows in the true force
+    with SimCamera(32, seed=5, presses=1, realtime=False, loop=True) as cam:
+        count = 0
+        while count <= len(frames):
+            count += len(cam.async_read(timeout_s=30.0))
+    assert count > len(frames)  # played on past the session's end
