@@ -8,8 +8,12 @@ Python values (it loads with ``weights_only=True``):
 The metadata carries the model config, window, channel order, normalisation,
 output scale, sensor geometry, units and provenance, so the file alone rebuilds a
 working predictor. Reference checkpoints (pickled training dicts with numpy
-arrays) are read with ``weights_only=True`` and an allow-list of numpy types;
-anything else a pickle asks for is refused before it can run.
+arrays) are read with ``weights_only=True``; numpy arrays are built only by the
+checked stand-ins of :mod:`beadsight.safe_numpy` (plain numeric and bool dtypes),
+and anything else a pickle asks for is refused before it can run. Whatever the
+format, :func:`load_checkpoint` refuses non-finite weights and statistics, a zero
+``pixel_std``, a non-positive output scale and metadata that does not fit the
+weights, before it builds the model.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from beadsight import safe_numpy
 from beadsight.config import REFERENCE_G_TO_N, ModelConfig, SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.files import atomic_write_bytes
@@ -79,6 +84,10 @@ class CheckpointMeta:
     def from_json(cls, text: str, source: str) -> CheckpointMeta:
         try:
             d = json.loads(text)
+            if not isinstance(d, dict):
+                raise CheckpointError(
+                    f"{source}: beadsight metadata is a JSON {type(d).__name__}; expected an object"
+                )
             if d.get("format") != FORMAT:
                 raise CheckpointError(f"{source}: metadata format is {d.get('format')!r}")
             if d.get("format_version", 0) > FORMAT_VERSION:
@@ -89,14 +98,16 @@ class CheckpointMeta:
             return cls(
                 model=ModelConfig.from_dict(d["model"]),
                 geometry=SensorGeometry.from_dict(d["geometry"]),
-                pixel_mean=list(d["pixel_mean"]),
-                pixel_std=list(d["pixel_std"]),
+                pixel_mean=_floats(d["pixel_mean"], source, "pixel_mean"),
+                pixel_std=_floats(d["pixel_std"], source, "pixel_std"),
                 channel_order=d["channel_order"],
-                output_scale_kpa=float(d["output_scale_kpa"]),
+                output_scale_kpa=_number(d["output_scale_kpa"], source, "output_scale_kpa"),
                 provenance=d.get("provenance", {}),
                 training=d.get("training", {}),
             )
-        except (KeyError, TypeError, json.JSONDecodeError) as e:
+        except CheckpointError:
+            raise
+        except (KeyError, TypeError, AttributeError, ValueError) as e:  # ConfigError, JSON
             raise CheckpointError(f"{source}: malformed beadsight metadata ({e!r})") from None
 
 
@@ -216,29 +227,41 @@ def save_checkpoint(path: str | Path, model: PressureModel, **training_state: An
 
 
 # --- loading ------------------------------------------------------------------------
-def _numpy_safe_globals() -> list:
-    """numpy callables a pickled training dict needs, under numpy 1.x and 2.x names."""
-    core = getattr(np, "_core", None) or np.core
-    reconstruct = core.multiarray._reconstruct
-    scalar = core.multiarray.scalar
-    allowed: list = [np.ndarray, np.dtype, reconstruct, scalar]
-    for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
-        allowed += [(reconstruct, f"{mod}._reconstruct"), (scalar, f"{mod}.scalar")]
-    allowed += [
-        type(np.dtype(t))
-        for t in ("f2", "f4", "f8", "i1", "i2", "i4", "i8", "u1", "u2", "u4", "u8", "b1", "U1", "O")
-    ]
-    return allowed
+MAX_IMAGE_SIZE_PX = 4096  # far beyond any sensor image; refuses absurd metadata before allocating
+MAX_SPAN_FRAMES = 1024  # frames one window covers (~34 s at 30 fps); the predictor buffers them
+_ZIP_MAGIC = b"PK\x03\x04"  # torch's zip checkpoints
+_PICKLE_MAGIC = b"\x80"  # the PROTO opcode that starts legacy torch files and plain pickles
+
+
+def looks_like_checkpoint(path: str | Path) -> bool:
+    """True if ``path`` starts like a file :func:`read_checkpoint_file` may read (zip or pickle)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError:
+        return False
+    return head == _ZIP_MAGIC or head[:1] == _PICKLE_MAGIC
 
 
 def read_checkpoint_file(path: str | Path) -> dict[str, Any]:
-    """torch.load with ``weights_only=True`` and the numpy allow-list, with clear errors."""
+    """torch.load with ``weights_only=True`` and checked numpy arrays, with clear errors.
+
+    numpy arrays are built only for plain numeric and bool dtypes (:mod:`beadsight.safe_numpy`);
+    anything else the pickle asks for raises :class:`UnsafeCheckpointError`.
+    """
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"{path}: is a directory; expected a checkpoint file")
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found")
     try:
-        with torch.serialization.safe_globals(_numpy_safe_globals()):
-            obj = torch.load(path, map_location="cpu", weights_only=True)
+        with torch.serialization.safe_globals(safe_numpy.safe_globals()):
+            obj = safe_numpy.materialize(torch.load(path, map_location="cpu", weights_only=True))
+    except safe_numpy.UnsafeContent as e:
+        raise UnsafeCheckpointError(
+            f"{path}: refused to load: {e}; only plain numeric numpy arrays are read, and "
+            "nothing from the file was executed"
+        ) from None
     except Exception as e:  # torch raises UnpicklingError/RuntimeError with long texts
         text = str(e)
         if "Weights only load failed" in text or "GLOBAL" in text:
@@ -248,9 +271,10 @@ def read_checkpoint_file(path: str | Path) -> dict[str, Any]:
                 "unsupported pickle content",
             )
             raise UnsafeCheckpointError(
-                f"{path}: refused to load: not a weights-only checkpoint ({detail}). Only tensors, numbers, strings and numpy arrays are read; "
-                "nothing from the file was executed. Convert checkpoints you trust with a "
-                "trusted tool first."
+                f"{path}: refused to load: not a weights-only checkpoint ({detail}). Only "
+                "tensors, numbers, strings and plain numeric numpy arrays are read; nothing "
+                "from the file was executed. Convert checkpoints you trust with a trusted tool "
+                "first."
             ) from None
         first = text.splitlines()[0] if text else ""
         raise CheckpointError(
@@ -261,12 +285,48 @@ def read_checkpoint_file(path: str | Path) -> dict[str, Any]:
     return obj
 
 
-def _array(value: Any, path: Path, key: str, length: int | None = None) -> list[float]:
-    arr = np.asarray(value.numpy() if isinstance(value, torch.Tensor) else value, dtype=float)
+def _floats(value: Any, source: Any, key: str, length: int = 3) -> list[float]:
+    """``length`` finite numbers from a list, array or tensor; CheckpointError otherwise."""
+    try:
+        arr = np.asarray(value.numpy() if isinstance(value, torch.Tensor) else value, dtype=float)
+    except (TypeError, ValueError):
+        raise CheckpointError(f"{source}: {key} is {value!r:.80}; expected numbers") from None
     arr = arr.reshape(-1)
-    if length is not None and arr.size != length:
-        raise CheckpointError(f"{path}: {key} has {arr.size} values, expected {length}")
+    if arr.size != length:
+        raise CheckpointError(
+            f"{source}: {key} has {arr.size} value(s), expected {length} (one per channel)"
+        )
+    if not np.isfinite(arr).all():
+        raise CheckpointError(f"{source}: {key} is {arr.tolist()}; expected finite numbers")
     return arr.tolist()
+
+
+def _number(value: Any, source: Any, key: str) -> float:
+    """One finite number (a float, int or 0-d array); CheckpointError otherwise."""
+    try:
+        arr = np.asarray(value.numpy() if isinstance(value, torch.Tensor) else value, dtype=float)
+    except (TypeError, ValueError):
+        raise CheckpointError(f"{source}: {key} is {value!r:.80}; expected a number") from None
+    if arr.shape != ():
+        raise CheckpointError(f"{source}: {key} has shape {arr.shape}; expected a single number")
+    if not np.isfinite(arr):
+        raise CheckpointError(f"{source}: {key} is {float(arr)}; expected a finite number")
+    return float(arr)
+
+
+def _reference_geometry(info: dict, path: Path) -> SensorGeometry:
+    """Sensor geometry from a reference ``data_loader_info`` dict."""
+    geometry = SensorGeometry().to_dict()
+    try:
+        if "image_size" in info:
+            geometry["image_size_px"] = int(np.asarray(info["image_size"]).reshape(-1)[0])
+        if "sensor_size" in info:
+            geometry["sensor_size_mm"] = float(np.asarray(info["sensor_size"]).reshape(-1)[0])
+        if "contact_radius" in info:
+            geometry["finger_radius_mm"] = float(info["contact_radius"])
+        return SensorGeometry.from_dict(geometry)
+    except (ValueError, TypeError, IndexError) as e:
+        raise CheckpointError(f"{path}: data_loader_info: {e}") from None
 
 
 def _reference_meta(obj: dict[str, Any], path: Path) -> tuple[CheckpointMeta, dict]:
@@ -274,47 +334,33 @@ def _reference_meta(obj: dict[str, Any], path: Path) -> tuple[CheckpointMeta, di
     for key in ("model_state_dict", "pixel_mean", "pixel_std", "avg_pressure"):
         if key not in obj:
             raise CheckpointError(f"{path}: reference checkpoint has no {key!r} entry")
-    state = obj["model_state_dict"]
+    state = _checked_weights(obj["model_state_dict"], path)
+    dropout = _number(obj.get("dropout_prob", 0.2), path, "dropout_prob")
     try:
-        model = infer_model_config(state, dropout=float(obj.get("dropout_prob", 0.2)))
-    except ValueError as e:
+        model = infer_model_config(state, dropout=dropout)
+    except (ValueError, IndexError) as e:
         raise CheckpointError(f"{path}: model_state_dict: {e}") from None
-    if "window_size" in obj and int(obj["window_size"]) != model.window:
+    if "window_size" in obj and _number(obj["window_size"], path, "window_size") != model.window:
         raise CheckpointError(
             f"{path}: window_size is {obj['window_size']} but the weights take "
             f"{model.window} frames"
         )
     info = obj.get("data_loader_info") or {}
-    geometry = SensorGeometry()
-    try:
-        if "image_size" in info:
-            size = np.asarray(info["image_size"]).reshape(-1)
-            geometry = geometry.with_image_size(int(size[0]))
-        if "sensor_size" in info:
-            geometry = SensorGeometry.from_dict(
-                {
-                    **geometry.to_dict(),
-                    "sensor_size_mm": float(np.asarray(info["sensor_size"]).reshape(-1)[0]),
-                }
-            )
-        if "contact_radius" in info:
-            geometry = SensorGeometry.from_dict(
-                {**geometry.to_dict(), "finger_radius_mm": float(info["contact_radius"])}
-            )
-    except (ValueError, TypeError) as e:
-        raise CheckpointError(f"{path}: data_loader_info: {e}") from None
-    avg_pressure_pa = float(np.asarray(obj["avg_pressure"]))
+    if not isinstance(info, dict):
+        raise CheckpointError(
+            f"{path}: data_loader_info is a {type(info).__name__}; expected a dict"
+        )
     meta = CheckpointMeta(
         model=model,
-        geometry=geometry,
-        pixel_mean=_array(obj["pixel_mean"], path, "pixel_mean", 3),
-        pixel_std=_array(obj["pixel_std"], path, "pixel_std", 3),
+        geometry=_reference_geometry(info, path),
+        pixel_mean=_floats(obj["pixel_mean"], path, "pixel_mean"),
+        pixel_std=_floats(obj["pixel_std"], path, "pixel_std"),
         channel_order="BGR",
-        output_scale_kpa=avg_pressure_pa / PA_PER_KPA,
+        output_scale_kpa=_number(obj["avg_pressure"], path, "avg_pressure") / PA_PER_KPA,
         provenance={
             "source": "reference",
             "file": str(path),
-            "epoch": int(obj["epoch"]) if "epoch" in obj else None,
+            "epoch": int(_number(obj["epoch"], path, "epoch")) if "epoch" in obj else None,
             "dataset_path": str(obj.get("dataset_path", "")),
             "force_unit": str(info.get("force_unit", "g")),
             "g_to_n": REFERENCE_G_TO_N,
@@ -323,17 +369,80 @@ def _reference_meta(obj: dict[str, Any], path: Path) -> tuple[CheckpointMeta, di
     return meta, state
 
 
+def _checked_weights(state: Any, path: Path) -> dict[str, torch.Tensor]:
+    """A state_dict of dense CPU tensors with finite values; CheckpointError otherwise."""
+    if not isinstance(state, dict):
+        raise CheckpointError(
+            f"{path}: weights are a {type(state).__name__}; expected a state_dict"
+        )
+    for key, value in state.items():
+        if not (
+            isinstance(key, str)
+            and isinstance(value, torch.Tensor)
+            and value.layout == torch.strided
+            and value.device.type == "cpu"
+            and not value.is_quantized
+        ):
+            raise CheckpointError(f"{path}: weight {key!r:.80} is not a dense CPU tensor")
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            bad = int((~torch.isfinite(value)).sum())
+            raise CheckpointError(
+                f"{path}: weight '{key}' has {bad} NaN/inf value(s); expected finite numbers"
+            )
+    return state
+
+
+def _check_meta(meta: CheckpointMeta, state: dict[str, torch.Tensor], path: Path) -> None:
+    """Refuse metadata that would give a model NaN output or allocate absurd buffers."""
+    _floats(meta.pixel_mean, path, "pixel_mean")
+    if min(_floats(meta.pixel_std, path, "pixel_std")) <= 0:
+        raise CheckpointError(f"{path}: pixel_std is {meta.pixel_std}; expected values > 0")
+    if not _number(meta.output_scale_kpa, path, "output_scale_kpa") > 0:
+        raise CheckpointError(
+            f"{path}: output_scale_kpa is {meta.output_scale_kpa}; expected a number > 0"
+        )
+    if meta.channel_order not in ("RGB", "BGR"):
+        raise CheckpointError(
+            f"{path}: channel_order is {meta.channel_order!r}; expected RGB or BGR"
+        )
+    if meta.geometry.image_size_px > MAX_IMAGE_SIZE_PX:
+        raise CheckpointError(
+            f"{path}: image_size_px is {meta.geometry.image_size_px}; expected at most "
+            f"{MAX_IMAGE_SIZE_PX}"
+        )
+    if meta.model.span > MAX_SPAN_FRAMES:
+        raise CheckpointError(
+            f"{path}: the model's window spans {meta.model.span} frames; expected at most "
+            f"{MAX_SPAN_FRAMES}"
+        )
+    for key in ("provenance", "training"):
+        if not isinstance(getattr(meta, key), dict):
+            raise CheckpointError(f"{path}: {key} is not a JSON object")
+    try:  # the shapes the metadata describes must be the weights' (before building them)
+        have = infer_model_config(state).to_dict()
+    except (ValueError, IndexError) as e:
+        raise CheckpointError(f"{path}: state_dict: {e}") from None
+    for key, value in meta.model.to_dict().items():  # dropout and stride are not in the shapes
+        if key in have and key not in ("dropout", "frame_stride") and have[key] != value:
+            raise CheckpointError(
+                f"{path}: model {key} is {value} in the metadata but {have[key]} in the weights"
+            )
+
+
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> PressureModel:
     """Load a beadsight checkpoint or a reference training checkpoint, safely.
 
     Never executes code from the file: a pickle that asks for anything other than
-    tensors, plain values or numpy arrays raises :class:`UnsafeCheckpointError`.
+    tensors, plain values or plain numeric numpy arrays raises
+    :class:`UnsafeCheckpointError`. Non-finite weights or statistics, a zero pixel_std,
+    a non-positive output scale and metadata that does not fit the weights raise
+    :class:`CheckpointError`, so no command runs a model that can only output NaN.
     """
     path = Path(path)
     obj = read_checkpoint_file(path)
     if "beadsight" in obj:
         meta = CheckpointMeta.from_json(obj["beadsight"], str(path))
-        state = obj.get("state_dict")
+        state = _checked_weights(obj.get("state_dict"), path)
     elif "model_state_dict" in obj:
         meta, state = _reference_meta(obj, path)
     else:
@@ -341,6 +450,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
             f"{path}: neither a beadsight checkpoint (no 'beadsight' entry) nor a reference "
             f"checkpoint (no 'model_state_dict'); keys: {sorted(map(str, obj))[:10]}"
         )
+    _check_meta(meta, state, path)
     module = _build_module(meta)
     try:
         module.net.load_state_dict(state)

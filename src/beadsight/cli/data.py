@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import zipfile
 from pathlib import Path
 
 
@@ -60,17 +59,18 @@ def dataset_summary(path: str) -> dict:
 def _info(args: argparse.Namespace) -> int:
     import h5py
 
-    from beadsight.checkpoint import checkpoint_summary
+    from beadsight.checkpoint import checkpoint_summary, looks_like_checkpoint
     from beadsight.errors import BeadSightError
 
     path = Path(args.file)
-    if path.is_file() and not h5py.is_hdf5(path):
-        if not zipfile.is_zipfile(path):
+    if path.is_file() and not h5py.is_hdf5(path):  # every file load_checkpoint may read
+        if not looks_like_checkpoint(path):
             raise BeadSightError(
-                f"{path}: neither a dataset (an HDF5 file) nor a checkpoint (a torch zip archive)"
+                f"{path}: neither a dataset (an HDF5 file) nor a checkpoint (a torch zip "
+                "archive or pickle)"
             )
         summary = checkpoint_summary(path)
-    else:
+    else:  # a dataset, or a missing path, directory or device: open_dataset names it
         summary = dataset_summary(args.file)
     if args.json:
         print(json.dumps(summary))

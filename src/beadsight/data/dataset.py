@@ -25,6 +25,7 @@ from beadsight.config import ContactThresholds, SensorGeometry
 from beadsight.data.presses import segment_presses
 from beadsight.errors import BeadSightError
 from beadsight.geometry import force_to_newtons
+from beadsight.h5safe import find_dataset, open_h5
 
 FORMAT = "beadsight-dataset"
 FORMAT_VERSION = 1
@@ -118,13 +119,11 @@ class Dataset:
 
 # --- reading ------------------------------------------------------------------------
 def _get(f: h5py.File, path: Path, names: tuple[str, ...], expected: str) -> h5py.Dataset:
-    for name in names:
-        if name in f:
-            obj = f[name]
-            if not isinstance(obj, h5py.Dataset):
-                raise DatasetError(f"{path}: '{name}' is a group; expected a dataset of {expected}")
-            return obj
-    raise DatasetError(f"{path}: missing dataset '{names[0]}' (expected {expected})")
+    """The first of ``names`` as a dataset whose claimed size the file holds (h5safe)."""
+    ds = find_dataset(f, names, path, DatasetError, expected)
+    if ds is None:
+        raise DatasetError(f"{path}: missing dataset '{names[0]}' (expected {expected})")
+    return ds
 
 
 def _attr_json(f: h5py.File, key: str, default: Any) -> Any:
@@ -151,20 +150,13 @@ def _reference_geometry(f: h5py.File, image_size: int) -> SensorGeometry:
 def open_dataset(path: str | Path, thresholds: ContactThresholds = ContactThresholds()) -> Dataset:
     """Open a beadsight dataset or a reference processed HDF5 file for reading."""
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: dataset file not found")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise DatasetError(
-            f"{path}: not a readable HDF5 file ({e}); the file may be truncated or corrupt"
-        ) from None
+    f = open_h5(path, "dataset file", DatasetError)
     try:
         return _read(f, path, thresholds)
     except DatasetError:
         f.close()
         raise
-    except (OSError, KeyError, ValueError, TypeError) as e:
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
         f.close()
         raise DatasetError(f"{path}: unreadable dataset ({type(e).__name__}: {e})") from None
 
@@ -227,7 +219,7 @@ def _read(f: h5py.File, path: Path, thresholds: ContactThresholds) -> Dataset:
         position = load(("position",), "(N, 2) float64 mm", (n, 2)).astype(np.float64)
         valid = load(("valid",), "(N,) bool", (n,)).astype(bool)
         timestamp = load(("timestamp",), "(N,) float64 unix seconds", (n,)).astype(np.float64)
-        order = f["frames"].attrs.get("channel_order", "RGB")
+        order = frames.attrs.get("channel_order", "RGB")
         channel_order = order.decode() if isinstance(order, bytes) else str(order)
         if channel_order not in ("RGB", "BGR"):
             raise DatasetError(

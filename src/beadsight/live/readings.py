@@ -43,6 +43,7 @@ import numpy as np
 from beadsight import __version__
 from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
+from beadsight.h5safe import find_dataset, open_h5
 
 logger = logging.getLogger(__name__)
 
@@ -245,12 +246,7 @@ class ReadingsFile:
 def open_readings(path: str | Path) -> ReadingsFile:
     """Open a file written by :class:`ReadingsWriter`; errors name the file and the field."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: readings file not found")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise ReadingsFileError(f"{path}: not an HDF5 file ({e})") from None
+    f = open_h5(path, "readings file", ReadingsFileError, missing=FileNotFoundError)
     try:
         fmt = f.attrs.get("format")
         if fmt != FORMAT:
@@ -268,24 +264,29 @@ def open_readings(path: str | Path) -> ReadingsFile:
             raise ReadingsFileError(f"{path}: attribute 'geometry' is missing")
         geometry = SensorGeometry.from_dict(json.loads(f.attrs["geometry"]))
         columns = {}
-        for name in (*SCALAR_FIELDS, "pressure_kpa"):
-            if name not in f:
+        for name in (*SCALAR_FIELDS, "pressure_kpa"):  # every claim checked before any read
+            columns[name] = find_dataset(f, (name,), path, ReadingsFileError)
+            if columns[name] is None:
                 raise ReadingsFileError(f"{path}: dataset {name!r} is missing")
-            columns[name] = f[name][()] if name != "pressure_kpa" else f[name]
-        n = len(columns["timestamp_s"])
+        n = columns["timestamp_s"].shape[0] if columns["timestamp_s"].ndim else 0
         s = geometry.image_size_px
-        for name, (shape, _dtype, _unit) in SCALAR_FIELDS.items():
-            if columns[name].shape != (n, *shape):
+        shapes = {name: (n, *shape) for name, (shape, _dtype, _unit) in SCALAR_FIELDS.items()}
+        for name, shape in {**shapes, "pressure_kpa": (n, s, s)}.items():
+            if columns[name].shape != shape:
                 raise ReadingsFileError(
-                    f"{path}: dataset {name!r} has shape {columns[name].shape}, "
-                    f"expected {(n, *shape)}"
+                    f"{path}: dataset {name!r} has shape {columns[name].shape}, expected {shape}"
                 )
-        if columns["pressure_kpa"].shape != (n, s, s):
-            raise ReadingsFileError(
-                f"{path}: dataset 'pressure_kpa' has shape {columns['pressure_kpa'].shape}, "
-                f"expected {(n, s, s)}"
-            )
+        for name in SCALAR_FIELDS:
+            columns[name] = columns[name][()]
         provenance = json.loads(f.attrs.get("provenance", "{}"))
+    except ReadingsFileError:
+        f.close()
+        raise
+    except (OSError, RuntimeError, KeyError, TypeError, ValueError) as e:
+        f.close()
+        raise ReadingsFileError(
+            f"{path}: unreadable readings file ({type(e).__name__}: {e})"
+        ) from None
     except BaseException:
         f.close()
         raise
