@@ -14,6 +14,7 @@ from beadsight.devices import (
     DeviceNotConnectedError,
     DeviceTimeoutError,
     MarlinPrinter,
+    PrinterDesyncError,
     PrinterError,
     SafetyEnvelope,
     SafetyError,
@@ -49,6 +50,27 @@ def printer(virtual):
 def homed(printer: MarlinPrinter) -> MarlinPrinter:
     printer.home()
     return printer
+
+
+def within(seconds: float, fn, *args):
+    """Run fn(*args) in a thread; its result or exception, or fail if it hangs."""
+    result: dict = {}
+
+    def run():
+        try:
+            result["value"] = fn(*args)
+        except BaseException as e:  # noqa: BLE001 - handed to the test
+            result["error"] = e
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    assert not thread.is_alive(), f"{fn.__name__} still waiting after {seconds} s"
+    return result
+
+
+def line_number(framed: str) -> int:
+    return int(framed.split()[0][1:])
 
 
 # --- framing ------------------------------------------------------------------------------
@@ -153,6 +175,184 @@ def test_busy_without_keepalives_times_out():
         vp.busy_next(1.0)
         with pytest.raises(DeviceTimeoutError, match="'M17'"):
             p.send("M17")
+
+
+# --- transmission errors in OctoPrint's words, lost lines, lost oks (issue 13, item 8) ---
+@pytest.fixture
+def octo():
+    with VirtualPrinter(time_scale=FAST, home_position_mm=HOME, error_style="octoprint") as vp:
+        with MarlinPrinter(vp.port, envelope=ENVELOPE, timeout_s=1.0, boot_settle_s=SETTLE_S) as p:
+            yield p, vp
+
+
+def test_octoprint_missing_checksum_with_resend_is_recovered(octo):
+    printer, virtual = octo
+    homed(printer)
+    virtual.reject_next("Error: Missing checksum", resend=0)  # then 'Resend:n', 'ok'
+    printer.move(*CENTRE, 140.0, 3000)
+    assert virtual.executed.count("G1 X151.8 Y108.9 Z140 F3000") == 1
+    assert printer.resend_count == 1
+    printer.wait_for_motion()
+    assert printer.position() == pytest.approx((*CENTRE, 140.0), abs=0.01)
+
+
+def test_printer_ahead_expected_line_error_resynchronises(octo):
+    printer, virtual = octo
+    homed(printer)
+    virtual.reject_next(resend=+1)  # 'Error: expected line 16 got 15', 'Resend:16', 'ok'
+    printer.move(*CENTRE, 140.0, 3000)
+    assert any(t.startswith("Error: expected line") for t in virtual.replies)
+    assert printer.resyncs == 1
+    assert any(" M110 N" in line for line in virtual.received[2:])
+    assert virtual.executed.count("G1 X151.8 Y108.9 Z140 F3000") == 1
+    printer.wait_for_motion()
+    assert virtual.current_position() == pytest.approx((*CENTRE, 140.0))
+    assert printer.send("M105")[0].startswith("T:")  # line numbers agree again
+
+
+@pytest.mark.parametrize(
+    "fault",
+    [
+        lambda vp: vp.lose_next("line"),
+        lambda vp: vp.reject_next(
+            "Error: No Line Number with checksum, Last Line: 7", resend=None, ok=False
+        ),
+    ],
+    ids=["line-lost", "error-without-resend"],
+)
+def test_line_without_ok_is_sent_again_after_resynchronising(octo, fault):
+    printer, virtual = octo
+    homed(printer)
+    fault(virtual)
+    start = time.monotonic()
+    printer.move(*CENTRE, 140.0, 3000)
+    assert time.monotonic() - start < 5.0  # one ok timeout (1 s) and one reply grace (1 s)
+    assert printer.resyncs == 1
+    assert virtual.executed.count("G1 X151.8 Y108.9 Z140 F3000") == 1
+    printer.wait_for_motion()
+    assert printer.position() == pytest.approx((*CENTRE, 140.0), abs=0.01)
+
+
+def test_lost_ok_repeats_only_the_current_absolute_move(octo):
+    printer, virtual = octo
+    homed(printer)
+    virtual.lose_next("ok")
+    printer.move(*CENTRE, 140.0, 3000)
+    # the printer ran it, its ok was lost: the same absolute move again is harmless
+    assert virtual.executed.count("G1 X151.8 Y108.9 Z140 F3000") == 2
+    assert [r.gcode for r in printer.command_log].count("G1 X151.8 Y108.9 Z140 F3000") == 1
+    printer.wait_for_motion()
+    assert printer.position() == pytest.approx((*CENTRE, 140.0), abs=0.01)
+
+
+def test_octoprint_style_position_report_on_the_ok_line(octo):
+    printer, _ = octo
+    assert printer.home() == HOME  # 'ok X:0.0 Y:0.0 Z:180.0 E:0.0 Count: ...'
+
+
+# --- a resend request for an acknowledged line (item 9) --------------------------------------
+def test_resend_of_acknowledged_line_never_replays_motion(printer, virtual):
+    homed(printer)
+    travel = "G1 X156.8 Y108.9 Z137.5 F3000"
+    printer.move(CENTRE[0] + 5, CENTRE[1], 137.5, 3000)
+    printer.wait_for_motion()
+    printer.move(None, None, 128.0, 200)  # the finger goes down
+    travel_n = next(line_number(r) for r in virtual.received if travel in r)
+    next_n = line_number(virtual.received[-1]) + 1
+    # the board lost its place: it asks again for the travel line, acknowledged long ago
+    virtual.reject_next(resend=travel_n - next_n)
+    with pytest.raises(PrinterDesyncError) as err:
+        printer.wait_for_motion()
+    assert virtual.executed.count(travel) == 1  # never replayed at press depth
+    message = str(err.value)
+    assert f"resend line {travel_n}" in message and "already acknowledged" in message
+    assert "raised to Z=135" in message
+    assert virtual.current_position()[2] == pytest.approx(ENVELOPE.z_clear_mm)
+    assert virtual.current_position()[:2] == pytest.approx((CENTRE[0] + 5, CENTRE[1]))
+    assert printer.target == pytest.approx((CENTRE[0] + 5, CENTRE[1], 135.0))
+    assert printer.send("M105")[0].startswith("T:")  # line numbers re-synchronised
+    assert isinstance(err.value, PrinterError)
+
+
+def test_position_other_than_commanded_after_a_wait_is_a_desync(printer, virtual):
+    homed(printer)
+    printer.move(*CENTRE, 137.5, 3000)
+    virtual.m114_reply_next("X:151.80 Y:98.90 Z:137.50 E:0.00 Count X:0 Y:0 Z:0")
+    with pytest.raises(PrinterDesyncError, match="reports X=151.800 Y=98.900"):
+        printer.wait_for_motion()
+
+
+# --- timeouts, acknowledgements, messages (item 10) ------------------------------------------
+def test_endless_busy_keepalives_do_not_defeat_the_homing_deadline():
+    with VirtualPrinter(busy_interval_s=0.05) as vp:
+        with MarlinPrinter(vp.port, timeout_s=0.3, home_timeout_s=1.0, boot_settle_s=SETTLE_S) as p:
+            vp.busy_next(math.inf)
+            start = time.monotonic()
+            result = within(5.0, p.home)
+    assert isinstance(result.get("error"), DeviceTimeoutError)
+    assert time.monotonic() - start < 3.0
+    assert "'G28'" in str(result["error"]) and "busy" in str(result["error"])
+
+
+def test_endless_busy_keepalives_do_not_defeat_the_command_deadline():
+    with VirtualPrinter(busy_interval_s=0.05) as vp:
+        with MarlinPrinter(vp.port, timeout_s=0.3, busy_timeout_s=0.7, boot_settle_s=SETTLE_S) as p:
+            vp.busy_next(math.inf)
+            start = time.monotonic()
+            result = within(5.0, p.send, "M17")
+            elapsed = time.monotonic() - start
+    assert isinstance(result.get("error"), DeviceTimeoutError)
+    assert 0.9 <= elapsed < 3.0
+    assert "overall limit of 1.0 s" in str(result["error"])
+
+
+def test_duplicated_ok_does_not_end_wait_for_motion_early(printer, virtual):
+    homed(printer)
+    target = (*CENTRE, 137.5)
+    virtual.duplicate_ok_next()  # the G1 gets two oks; the second meets the M400
+    printer.move(*target, 700)  # ~16 s simulated, ~0.8 s host
+    printer.wait_for_motion()
+    assert virtual.current_position() == pytest.approx(target)
+    assert printer.extra_oks == 1
+
+
+def test_duplicated_ok_does_not_end_a_dwell_early(printer, virtual):
+    homed(printer)
+    virtual.duplicate_ok_next()
+    printer.send("M105")
+    start = time.monotonic()
+    printer.dwell(10_000)  # 10 s simulated = 0.5 s host
+    assert time.monotonic() - start >= 10.0 / FAST - 0.02
+
+
+def test_malformed_position_report_raises_printer_error(printer, virtual):
+    virtual.m114_reply_next("X:1.2.3 Y:0.00 Z:180.00 E:0.00 Count X:0 Y:0 Z:0")
+    with pytest.raises(PrinterError, match="could not read the position.*X:1.2.3"):
+        printer.position()
+    assert printer.position() == HOME  # the next report is fine
+    virtual.m114_reply_next("echo:no position today")  # a bare 'ok'
+    with pytest.raises(PrinterError, match="the reply to 'M114' carried no data"):
+        printer.position()
+
+
+def test_move_refused_after_homing_to_z0_names_the_target_and_the_fix():
+    with (
+        VirtualPrinter(time_scale=FAST, home_position_mm=(0.0, 0.0, 0.0)) as vp,
+        MarlinPrinter(vp.port, envelope=ENVELOPE, timeout_s=1.0, boot_settle_s=SETTLE_S) as p,
+    ):
+        assert p.home() == (0.0, 0.0, 0.0)
+        sent = len(vp.received)
+        with pytest.raises(SafetyError) as err:
+            p.move(*CENTRE, 137.5, 700)
+        message = str(err.value)
+        assert "refused move to X=151.800 Y=108.900 Z=137.500" in message
+        assert "the head is at X=0.000 Y=0.000 Z=0.000" in message
+        assert "raise Z first: move(None, None, 135" in message
+        assert len(vp.received) == sent
+        p.move(None, None, 137.5, 3000)  # the fix works
+        p.move(*CENTRE, 137.5, 3000)
+        p.wait_for_motion()
+        assert vp.current_position() == pytest.approx((*CENTRE, 137.5))
 
 
 def test_error_line_raises_with_printer_text_and_halts(printer, virtual):

@@ -10,6 +10,7 @@ import pytest
 
 from beadsight.devices import DeviceNotConnectedError, DeviceTimeoutError, HX711Scale, ScaleError
 from beadsight.devices.scale_protocol import (
+    ProtocolDetector,
     ReferenceDecoder,
     encode_reference_value,
     parse_info,
@@ -224,6 +225,49 @@ def test_reference_protocol_counts_lost_lines():
         time.sleep(0.2)
         wait_fresh(scale)
         assert scale.dropped == 3
+
+
+# --- protocol detection -------------------------------------------------------------------------
+def test_detector_needs_more_than_one_number_line():
+    detector = ProtocolDetector()
+    assert detector.feed("1.23", 0) == (None, [])  # the tail of 'R,12,3456,1.23'
+    assert detector.feed("R,13,3468,1.25", 1) == ("beadsight", [1])
+    assert detector.dropped == "1.23"
+    detector = ProtocolDetector()
+    assert detector.feed("2.50", 0) == (None, [])  # the tail of '30012.50'
+    assert detector.feed("40012.61", 1) == (None, [])
+    assert detector.feed("50012.70", 2) == ("reference", [1, 2])  # the first may be partial
+    detector = ProtocolDetector()
+    assert detector.feed("start", 0) == ("reference", [0])
+    with pytest.raises(ValueError, match="not a scale line"):
+        ProtocolDetector().feed("\ufffd\ufffd", 0)
+
+
+def test_beadsight_board_joined_mid_line_is_not_taken_for_the_reference():
+    # a board that does not reset on connect: the first line is the tail of a reading
+    with (
+        virtual_scale(protocol="beadsight", rate_hz=80, reset_on_open=False) as vs,
+        HX711Scale(vs.port) as scale,
+    ):
+        assert scale.protocol == "beadsight"
+        vs.load_g = 250.0
+        assert wait_fresh(scale).grams == pytest.approx(250.0, abs=0.2)
+        assert scale.garbage_lines == 0 and scale.dropped == 0
+        seqs = [r.seq for r in scale.drain()]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+
+
+@pytest.mark.parametrize("seed", range(3))  # joins at different points of the counter cycle
+def test_reference_sketch_joined_mid_line_decodes_without_false_losses(seed):
+    with (
+        virtual_scale(protocol="reference", rate_hz=40, reset_on_open=False, seed=seed) as vs,
+        HX711Scale(vs.port) as scale,
+    ):
+        assert scale.protocol == "reference"
+        vs.load_g = 123.45
+        assert wait_fresh(scale).grams == pytest.approx(123.45, abs=0.1)
+        assert scale.dropped == 0  # a partial first line decoded as a reading looks like losses
+        assert scale.garbage_lines == 0
 
 
 # --- faults ------------------------------------------------------------------------------------

@@ -61,6 +61,12 @@ class PrinterError(DeviceError):
     """The printer reported an error (``Error:...``) or is halted."""
 
 
+class PrinterDesyncError(PrinterError):
+    """Printer and host disagree about which commands ran (e.g. the printer asked again for
+    a line it had already acknowledged, or reports another position than commanded).
+    Nothing was replayed; the driver raised the finger where it could. Home again."""
+
+
 class ScaleError(DeviceError):
     """The scale rejected a command (``ERR ...``) or gave unusable data."""
 

@@ -4,7 +4,8 @@
 background thread and stamps each with both host clocks the moment its line arrives.
 It speaks the beadsight firmware protocol (``firmware/scale/scale.ino``) and the
 reference sketch's plain format, described in :mod:`beadsight.devices.scale_protocol`;
-``protocol="auto"`` decides from the first recognisable line.
+``protocol="auto"`` decides from the first lines (:class:`~beadsight.devices.scale_protocol.
+ProtocolDetector`: one partial first line cannot make it pick the wrong protocol).
 
 * Readings go to a thread-safe buffer: :meth:`~HX711Scale.latest`,
   :meth:`~HX711Scale.readings_since`, :meth:`~HX711Scale.drain`,
@@ -49,9 +50,9 @@ from beadsight.devices.base import (
     host_now,
 )
 from beadsight.devices.scale_protocol import (
-    FIRMWARE_NAME,
     SUPPORTED_RATES_HZ,
     DeviceInfo,
+    ProtocolDetector,
     ReferenceDecoder,
     parse_info,
     parse_reading,
@@ -127,6 +128,7 @@ class HX711Scale:
         self._decoder = ReferenceDecoder()
         self._last_seq: int | None = None
         self._ref_seq = -1
+        self._detector = ProtocolDetector()
         self._latest: Reading | None = None
         self._io: SerialLines | None = None
         self._thread: threading.Thread | None = None
@@ -394,14 +396,27 @@ class HX711Scale:
 
     def _handle(self, line: str, t_unix: float, t_mono: float) -> None:
         if self.protocol is None:
-            self.protocol = _detect_protocol(line)
-            if self.protocol is None:
-                raise ValueError(line)
-            logger.info("%s: detected the %s protocol", self.name, self.protocol)
+            self._detect(line, t_unix, t_mono)
+            return
         if self.protocol == "beadsight":
             self._handle_beadsight(line, t_unix, t_mono)
         else:
             self._handle_reference(line, t_unix, t_mono)
+
+    def _detect(self, line: str, t_unix: float, t_mono: float) -> None:
+        """Feed the protocol detector; ValueError for garbage."""
+        protocol, lines = self._detector.feed(line, (line, t_unix, t_mono))
+        if protocol is None:
+            return
+        self.protocol = protocol
+        dropped = (
+            f"; dropped {self._detector.dropped!r} (maybe partial)"
+            if self._detector.dropped
+            else ""
+        )
+        logger.info("%s: detected the %s protocol%s", self.name, protocol, dropped)
+        for args in lines:
+            self._handle(*args)
 
     def _handle_beadsight(self, line: str, t_unix: float, t_mono: float) -> None:
         if line.startswith("R,"):
@@ -462,16 +477,3 @@ class HX711Scale:
         n = self.garbage_lines
         if n <= GARBAGE_WARN_FIRST or n % GARBAGE_WARN_EVERY == 0:
             logger.warning("%s: skipped unreadable line %r (%d so far)", self.name, line[:40], n)
-
-
-def _detect_protocol(line: str) -> str | None:
-    """'beadsight', 'reference' or None (undecided) from one line."""
-    if line.startswith("R,") or line.startswith(f"I,{FIRMWARE_NAME}"):
-        return "beadsight"
-    if line.strip().lower() == "start":
-        return "reference"
-    try:
-        parse_reference_value(line)
-    except ValueError:
-        return None
-    return "reference"

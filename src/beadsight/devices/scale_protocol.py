@@ -27,12 +27,21 @@ boot makes the first reading about 0). The counter then detects dropped lines: a
 change, so a plain sketch printing grams without a counter (``i`` always 0) decodes the
 same and reports no drops. The reference's own reader instead took ``v mod 10000`` and
 mapped values above 9000 to negative ones (readings limited to (-1000, 9000] g).
+
+**Telling them apart** (:class:`ProtocolDetector`): a beadsight line (``R,...``,
+``I,beadsight-scale,...``) decides at once, so does the reference sketch's ``start``.
+Plain numbers decide for the reference sketch only after ``DETECT_NUMBER_LINES`` of them
+in a row, and the first of them is dropped: a board that does not reset when the port
+opens is joined mid-line, and the tail of ``R,12,3456,1.23`` reads as the number ``1.23``.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
 
 FIRMWARE_NAME = "beadsight-scale"
 FIRMWARE_VERSION = "1.0.0"
@@ -40,6 +49,7 @@ COUNTER_STEP_G = 10000.0  # the reference sketch adds this times its counter
 COUNTER_PERIOD = 10  # the reference counter runs 0..9
 REFERENCE_COUNTS_PER_GRAM = 545654.0 / 1175.0  # the reference sketch's calibration, ~464.4
 SUPPORTED_RATES_HZ = (10, 80)  # the HX711's two output data rates (RATE pin low / high)
+DETECT_NUMBER_LINES = 3  # plain-number lines in a row that identify the reference sketch
 
 
 @dataclass(frozen=True)
@@ -141,3 +151,47 @@ class ReferenceDecoder:
         self.previous_grams = grams
         self.previous_counter = counter
         return grams, counter, lost
+
+
+# --- detection ---------------------------------------------------------------------------------
+def line_kind(line: str) -> str | None:
+    """'beadsight' or 'reference' for a line only that protocol sends, 'number' for a plain
+    number (the reference sketch, or the tail of a beadsight line), None for garbage."""
+    if line.startswith("R,") or line.startswith(f"I,{FIRMWARE_NAME}"):
+        return "beadsight"
+    if line.strip().lower() == "start":
+        return "reference"
+    try:
+        parse_reference_value(line)
+    except ValueError:
+        return None
+    return "number"
+
+
+class ProtocolDetector(Generic[T]):
+    """Decides the protocol from the first lines; see the module docstring."""
+
+    def __init__(self, number_lines: int = DETECT_NUMBER_LINES) -> None:
+        self.number_lines = int(number_lines)
+        self.pending: list[tuple[str, T]] = []  # number lines seen so far, with their items
+        self.dropped: str | None = None  # the number line dropped once decided (maybe partial)
+
+    def feed(self, line: str, item: T) -> tuple[str | None, list[T]]:
+        """``(protocol, items to handle with it)`` once decided, else ``(None, [])``.
+
+        item: what to hand back for this line (e.g. the line with its timestamps).
+        Raises ValueError for a line neither protocol sends.
+        """
+        kind = line_kind(line)
+        if kind is None:
+            raise ValueError(f"not a scale line: {line!r}")
+        if kind == "number":
+            self.pending.append((line, item))
+            if len(self.pending) < self.number_lines:
+                return None, []
+            kind, items = "reference", [it for _, it in self.pending[1:]]
+        else:
+            items = [item]
+        self.dropped = self.pending[0][0] if self.pending else None
+        self.pending = []
+        return kind, items

@@ -3,7 +3,9 @@
 It behaves like the Arduino: opening the port reboots it; after ``boot_delay_s`` it tares
 and announces itself (``I,beadsight-scale,...`` or ``start``), then streams one reading
 per sample period (``rate_hz``: 10 or 80, simulated time) with Gaussian noise and a
-linear drift. The load comes from ``load_g`` or from a force source (the rig's world:
+linear drift. ``reset_on_open=False`` models a board that does not reset (auto-reset
+disabled, or a USB adapter without DTR): it has been streaming all along, so the host
+joins mid-line and the first line it reads is the tail of a reading (``"1.23"``). The load comes from ``load_g`` or from a force source (the rig's world:
 ``force_fn(t_sim) -> newtons``).
 
 The load cell is modelled in ADC counts: ``counts = true_counts_per_gram * (load + drift +
@@ -43,6 +45,7 @@ TARE_SAMPLES = 10  # readings the firmware averages for T and C
 REFERENCE_RATE_HZ = 10.0  # the reference sketch runs the HX711 at its default rate
 MIN_NET_COUNTS = 100  # like the firmware: C refuses a load smaller than this (~0.2 g)
 MAX_BURST = 1000  # readings emitted in one tick at most (after a long host stall)
+PARTIAL_CHARS = 4  # a host joining mid-line first reads this many last characters of a line
 
 
 class VirtualScale(PtyDevice):
@@ -66,6 +69,7 @@ class VirtualScale(PtyDevice):
         counts_per_gram: float = REFERENCE_COUNTS_PER_GRAM,
         factor_error: float = 0.0,
         boot_delay_s: float = BOOT_DELAY_S,
+        reset_on_open: bool = True,
         seed: int = 0,
         name: str = "virtual scale",
     ):
@@ -87,6 +91,7 @@ class VirtualScale(PtyDevice):
         self.counts_per_gram = float(counts_per_gram)
         self.factor = self.counts_per_gram * (1.0 + factor_error)
         self.boot_delay_s = float(boot_delay_s)
+        self.reset_on_open = bool(reset_on_open)
         self.commands: list[str] = []  # every command line received
         self.sent = 0  # readings sent since boot
         self._rng = np.random.default_rng(seed)
@@ -99,6 +104,7 @@ class VirtualScale(PtyDevice):
         self._seq = 0
         self._counter = 0
         self._pending_reply: tuple[float, str] | None = None  # (simulated time, line)
+        self._cut_next = False  # the host joined mid-line: send only the next line's tail
         # faults
         self._garbage_to_emit = 0
         self._streaming = True
@@ -148,7 +154,15 @@ class VirtualScale(PtyDevice):
 
     # --- pty hooks ------------------------------------------------------------------------
     def on_host_open(self) -> None:
-        with self._lock:  # opening the port resets the Arduino
+        with self._lock:
+            if not self.reset_on_open:  # already streaming: the host joins mid-line
+                if not self._booted:  # powered on a while ago: somewhere in its counter cycle
+                    self._boot(self.clock.now(), announce=False)
+                    self._seq = int(self._rng.integers(100, 100_000))
+                    self._counter = self._seq % 10
+                self._cut_next = True
+                return
+            # opening the port resets the Arduino
             self._booted = False
             self._power_on = self.clock.now()
             self._boot_at = self._power_on + self.boot_delay_s
@@ -184,11 +198,13 @@ class VirtualScale(PtyDevice):
                 self._stream(now)
 
     # --- firmware behaviour -------------------------------------------------------------
-    def _boot(self, now: float) -> None:
+    def _boot(self, now: float, announce: bool = True) -> None:
         self._boot_at = None
         self._booted = True
         self._tare_counts = self._mean_counts(now)
-        if self.protocol == "beadsight":
+        if not announce:
+            pass  # the boot line went out before anyone listened
+        elif self.protocol == "beadsight":
             self.write_line(format_info(FIRMWARE_VERSION, self.rate_hz, self.factor))
         else:
             self.write_line("start")
@@ -209,6 +225,9 @@ class VirtualScale(PtyDevice):
             if self._drop_next > 0:
                 self._drop_next -= 1
                 continue
+            if self._cut_next:
+                self._cut_next = False
+                line = line[-PARTIAL_CHARS:]
             self.write_line(line)
             self.sent += 1
         if self._next_sample <= now:  # the host stalled for very long: skip ahead
