@@ -1,17 +1,20 @@
-"""Dataset commands: ``beadsight info`` (datasets and checkpoints) and
-``beadsight import-reference``."""
+"""Dataset commands: ``beadsight info`` (datasets and checkpoints),
+``beadsight import-reference`` and ``beadsight export-dataset``."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import zipfile
 from pathlib import Path
 
 import h5py
 
 from beadsight.checkpoint import checkpoint_summary
-from beadsight.data.dataset import import_reference, open_dataset
+from beadsight.data.dataset import open_dataset
+from beadsight.data.reference_file import EXPORT_FORMATS, export_reference, import_reference
+from beadsight.data.timing import duration
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -30,6 +33,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output dataset .h5")
     p.set_defaults(func=_import)
 
+    p = sub.add_parser(
+        "export-dataset",
+        help="write a dataset in the reference's processed HDF5 layout",
+        description="Write DATA with the names, dtypes, units (grams), BGR frames and "
+        "attributes of the reference's raw_data_process.py, for the reference's own scripts.",
+    )
+    p.add_argument("data", help="dataset .h5 (this project's format)")
+    p.add_argument("--format", choices=EXPORT_FORMATS, default="reference")
+    p.add_argument("--out", required=True, help="output .h5 file")
+    p.add_argument(
+        "--compression-level", type=int, default=0, help="gzip level of the images, 0 = none"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    p.set_defaults(func=_export)
+
 
 def dataset_summary(path: str) -> dict:
     with open_dataset(path) as ds:
@@ -43,7 +61,7 @@ def dataset_summary(path: str) -> dict:
             "image_size_px": ds.image_size,
             "channel_order": ds.channel_order,
             "fps": ds.fps,
-            "duration_s": float(ds.timestamp_s[-1] - ds.timestamp_s[0]) if len(ds) else 0.0,
+            **duration(ds),
             "peak_force_n": float(contact.max()) if len(contact) else 0.0,
             "mean_contact_force_n": float(contact.mean()) if len(contact) else 0.0,
             "geometry": ds.geometry.to_dict(),
@@ -60,6 +78,8 @@ def _info(args: argparse.Namespace) -> int:
         summary = checkpoint_summary(path)
     else:
         summary = dataset_summary(args.file)
+    if summary.get("warning"):
+        print(f"warning: {summary['warning']}", file=sys.stderr)
     if args.json:
         print(json.dumps(summary))
         return 0
@@ -71,4 +91,12 @@ def _info(args: argparse.Namespace) -> int:
 def _import(args: argparse.Namespace) -> int:
     out = import_reference(args.source, args.out)
     print(f"wrote {out}")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    out = export_reference(
+        args.data, args.out, compression_level=args.compression_level, overwrite=args.overwrite
+    )
+    print(f"wrote {out} ({args.format} layout)")
     return 0
