@@ -219,6 +219,22 @@ def _register_process(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--workers", type=int, default=0, help="threads (0 = one per core)")
     p.add_argument("--compression", choices=("gzip", "lzf"), default=None)
+    p.add_argument(
+        "--force-counter",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="decode the reference scale sketch's +10000*i counter in the force log: auto "
+        "(when the values step through its 0..9 cycle), on, off (default: auto)",
+    )
+    p.add_argument(
+        "--scale-capacity",
+        type=float,
+        default=50.0,
+        metavar="N",
+        help="scale capacity in newtons: readings beyond it are reported and the frames "
+        "labelled from them are invalid (default: 50)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_process)
 
@@ -237,8 +253,12 @@ def _process(args: argparse.Namespace) -> int:
         decode_scale=args.decode_scale,
         workers=args.workers,
         compression=args.compression,
+        force_counter=args.force_counter,
+        scale_capacity_n=args.scale_capacity,
     )
-    qa = process_recording(args.raw, args.out, config, progress=not args.no_progress)
+    qa = process_recording(
+        args.raw, args.out, config, progress=not args.no_progress, overwrite=args.overwrite
+    )
     json_path, png_path = qa_paths(args.out)
     invalid = ", ".join(f"{k} {v}" for k, v in qa["invalid_frames"].items()) or "none"
     dropped = qa["dropped_frames"]["total"]
@@ -251,6 +271,8 @@ def _process(args: argparse.Namespace) -> int:
             f"force {qa['force_n']['min']:.2f} .. {qa['force_n']['max']:.2f} N; "
             f"{qa['frames_per_s']:.0f} frames/s"
         )
+    if qa["force_counter"]["decoded"]:
+        print(qa["force_counter"]["message"])
     for w in qa["warnings"]:
         print(f"warning: {w}")
     print(f"QA: {json_path}, {png_path}")

@@ -35,6 +35,7 @@ REASONS = (
     "before_force_log",
     "after_force_log",
     "force_gap",
+    "force_over_capacity",
     "no_printer_log",
     "before_first_move",
     "non_data_move",
@@ -140,22 +141,32 @@ class FrameLabels:
     clock: str
 
 
-def frame_labels(rec: Recording, config: ProcessConfig) -> FrameLabels:
-    """Align the streams of ``rec`` and label every logged frame."""
+def frame_labels(
+    rec: Recording, config: ProcessConfig, over_capacity: np.ndarray | None = None
+) -> FrameLabels:
+    """Align the streams of ``rec`` and label every logged frame.
+
+    over_capacity: (M,) bool per force reading (see :mod:`beadsight.data.plausibility`):
+    those readings are not used, and frames whose force would come from them are invalid.
+    """
     clock = "monotonic" if rec.has_monotonic else "unix"
     key = "t_mono" if clock == "monotonic" else "t_unix"
     t_frames = getattr(rec.frames, key) - config.camera_delay_s
+    t_force = getattr(rec.force, key)
+    bad = np.zeros(len(t_force), bool) if over_capacity is None else over_capacity
     force, f_reason = interpolate_force(
-        getattr(rec.force, key),
-        rec.force.force_n,
+        t_force[~bad],
+        rec.force.force_n[~bad],
         t_frames,
         method=config.force_interpolation,
         max_gap_s=config.max_force_gap_s,
     )
+    f_reason[(f_reason == 0) & _bracket_holds(t_force[~bad], t_force[bad], t_frames)] = 4
+    force[f_reason > 0] = np.nan
     position, p_reason = hold_positions(
         getattr(rec.moves, key), rec.moves.offset_mm, rec.moves.is_data, t_frames
     )
-    reason = np.where(f_reason > 0, f_reason, np.where(p_reason > 0, p_reason + 3, 0))
+    reason = np.where(f_reason > 0, f_reason, np.where(p_reason > 0, p_reason + 4, 0))
     valid = reason == 0  # force stays known (not NaN) where only the position is missing
     return FrameLabels(
         rec.frames.t_unix - config.camera_delay_s,
@@ -165,3 +176,14 @@ def frame_labels(rec: Recording, config: ProcessConfig) -> FrameLabels:
         reason.astype(np.int8),
         clock,
     )
+
+
+def _bracket_holds(t_good: np.ndarray, t_bad: np.ndarray, t_frames: np.ndarray) -> np.ndarray:
+    """(N,) bool: a rejected reading lies between the two good readings around each frame."""
+    if t_bad.size == 0 or t_good.size == 0:
+        return np.zeros(len(t_frames), bool)
+    t_good, t_bad = np.sort(t_good), np.sort(t_bad)
+    j = np.searchsorted(t_good, t_frames, side="right")
+    lo = t_good[np.clip(j - 1, 0, t_good.size - 1)]
+    hi = t_good[np.clip(j, 0, t_good.size - 1)]
+    return np.searchsorted(t_bad, hi, side="left") > np.searchsorted(t_bad, lo, side="right")

@@ -2,7 +2,7 @@
 
 :func:`process_recording` reads a raw session of either format
 (:mod:`beadsight.data.recording`) and writes a dataset
-(:class:`beadsight.data.dataset.DatasetWriter`, which also segments presses):
+(:class:`beadsight.data.writer.DatasetWriter`, which also segments presses):
 
 * **Labels** (:mod:`beadsight.data.align`): force interpolated at each frame time,
   never extrapolated; position held from the last executed printer command;
@@ -32,10 +32,13 @@ from beadsight.data.align import (
     hold_positions,
     interpolate_force,
 )
-from beadsight.data.dataset import DatasetWriter
 from beadsight.data.images import DECODE_FLAGS, choose_decode, input_hw, stream_frames
+from beadsight.data.plausibility import check_recording
 from beadsight.data.qa import plot_qa, qa_paths, quality_summary, write_qa
 from beadsight.data.recording import Recording, RecordingError, open_recording
+from beadsight.data.recording.counter import FORCE_COUNTER_MODES
+from beadsight.data.writer import DatasetWriter
+from beadsight.files import OutputExistsError, refuse_existing
 from beadsight.preprocess import Preprocessor
 
 __all__ = [
@@ -69,6 +72,8 @@ class ProcessConfig(_Serializable):
     workers: int = 0  # preprocessing threads; 0 = one per CPU core
     batch_frames: int = 64  # frames per dataset append
     compression: str | None = None  # HDF5 compression of frames ("gzip", "lzf", None)
+    force_counter: str = "auto"  # the reference scale sketch's +10000*i counter: auto, on, off
+    scale_capacity_n: float = 50.0  # readings beyond this are implausible: warned, frames invalid
 
     def __post_init__(self) -> None:
         if int(self.image_size) != self.image_size or self.image_size < 8:
@@ -88,6 +93,12 @@ class ProcessConfig(_Serializable):
             raise ConfigError("workers must be >= 0 and batch_frames >= 1")
         if self.compression not in (None, "gzip", "lzf"):
             raise ConfigError(f"compression must be gzip, lzf or None, got {self.compression!r}")
+        if self.force_counter not in FORCE_COUNTER_MODES:
+            raise ConfigError(
+                f"force_counter must be one of {FORCE_COUNTER_MODES}, got {self.force_counter!r}"
+            )
+        if not self.scale_capacity_n > 0:
+            raise ConfigError(f"scale_capacity_n must be > 0 N, got {self.scale_capacity_n}")
 
 
 def process_recording(
@@ -97,20 +108,26 @@ def process_recording(
     *,
     geometry: SensorGeometry | None = None,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Process raw session ``raw`` into dataset ``out`` (HDF5); returns the QA summary.
 
-    Also writes ``<out>.qa.json`` and ``<out>.qa.png`` next to the dataset.
+    Also writes ``<out>.qa.json`` and ``<out>.qa.png`` next to the dataset. An
+    existing ``out`` is refused unless ``overwrite``, and a file of the recording
+    itself always. The recording is checked (:mod:`beadsight.data.plausibility`)
+    before anything is written; the dataset is renamed to ``out`` only once complete.
     """
     started = time.perf_counter()
     raw, out = Path(raw), Path(out)
-    rec = open_recording(raw)
+    _check_output(raw, out, overwrite)
+    rec = open_recording(raw, force_counter=config.force_counter)
     if len(rec.frames) == 0:
         raise RecordingError(f"{raw}: the frame log is empty; nothing to process")
     if not rec.videos:
         raise RecordingError(f"{raw}: no video files found")
+    checked = check_recording(rec, config.scale_capacity_n)
     geometry = (geometry or _recording_geometry(rec)).with_image_size(config.image_size)
-    labels = frame_labels(rec, config)
+    labels = frame_labels(rec, config, checked.over_capacity)
     pre = Preprocessor.from_spec(
         config.preprocess,
         input_hw(rec),
@@ -143,8 +160,19 @@ def process_recording(
         written = stream_frames(rec, order, labels, decode, writer, config, stats, progress)
     elapsed = time.perf_counter() - started
     qa = quality_summary(rec, labels, out, stats, written, elapsed, pre_used, factor, config)
+    qa.update(force_counter=rec.force_counter, plausibility=checked.summary())
     write_qa(out, qa)
     return qa
+
+
+def _check_output(raw: Path, out: Path, overwrite: bool) -> None:
+    """Never write over the recording being read; anything else only with ``overwrite``."""
+    if out.exists() and out.resolve().parent == raw.resolve():
+        raise OutputExistsError(
+            f"{out}: is a file of the raw recording {raw} being processed; write the "
+            "dataset somewhere else"
+        )
+    refuse_existing(out, overwrite)
 
 
 def _recording_geometry(rec: Recording) -> SensorGeometry:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from beadsight.data.recording.counter import apply_force_counter
 from beadsight.data.recording.logs import (
     FRAMES_FILE,
     RAW_FORMAT,
@@ -39,11 +40,20 @@ def detect_format(path: str | Path) -> str:
     )
 
 
-def open_recording(path: str | Path) -> Recording:
-    """Read a raw session folder of either format (videos stay on disk)."""
+def open_recording(path: str | Path, *, force_counter: str = "auto") -> Recording:
+    """Read a raw session folder of either format (videos stay on disk).
+
+    force_counter: "auto", "on" or "off": whether to decode the reference scale
+    sketch's ``+10000*i`` counter from the force readings (:mod:`.counter`); what was
+    found is in ``Recording.force_counter``.
+    """
     path = Path(path)
     fmt = detect_format(path)
     rec = open_ours(path) if fmt == RAW_FORMAT else open_reference(path)
+    name = rec.files.get("force", "force log")
+    rec.force, rec.force_counter = apply_force_counter(rec.force, force_counter, name)
+    if rec.force_counter["detected"] and not rec.force_counter["decoded"]:
+        rec.warnings.append(rec.force_counter["message"])
     for w in rec.warnings:
         logger.warning("%s: %s", path, w)
     return rec

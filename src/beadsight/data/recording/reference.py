@@ -137,11 +137,11 @@ def _read_force(path: Path, params: dict, warnings: list[str]) -> ForceLog:
         force_n = force_to_newtons(value[ok], unit)
     except ValueError as e:
         raise RecordingError(f"{path.parent / REF_PARAMS_FILE}: field 'force_unit': {e}") from None
+    grams = value[ok] if unit == "g" else force_n / REFERENCE_G_TO_N  # as printed by the scale
     n = int(ok.sum())
     return ForceLog(
-        t[ok], np.full(n, np.nan), force_n, force_n / REFERENCE_G_TO_N, np.full(n, -1, np.int64),
-        table.lines[ok],
-    )  # fmt: skip
+        t[ok], np.full(n, np.nan), force_n, grams, np.full(n, -1, np.int64), table.lines[ok]
+    )
 
 
 def _read_printer(
