@@ -14,6 +14,7 @@ import json
 import h5py
 import numpy as np
 import pytest
+from conftest import make_press_arrays, synthetic_press_frames
 
 from beadsight.cli import main
 from beadsight.config import REFERENCE_G_TO_N, SensorGeometry
@@ -22,7 +23,6 @@ from beadsight.data.labels import label_maps
 from beadsight.data.recording import REFERENCE_CENTRE_XY_MM
 from beadsight.data.reference_file import export_reference
 from beadsight.files import OutputExistsError
-from conftest import make_press_arrays, synthetic_press_frames
 
 N_INVALID = (0, 1, 2, 150)  # frames with unknown force and position
 

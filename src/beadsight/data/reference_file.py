@@ -39,6 +39,7 @@ from beadsight.files import (
     WriteError,
     describe_write_failure,
     finish_partial,
+    os_errors_as_write_errors,
     partial_path,
     refuse_existing,
 )
@@ -120,6 +121,8 @@ def export_reference(
     if not 0 <= int(compression_level) <= 9:
         raise DatasetError(f"compression_level must be 0..9 (gzip), got {compression_level}")
     partial = partial_path(dst)
+    with os_errors_as_write_errors(partial):
+        dst.parent.mkdir(parents=True, exist_ok=True)
     with open_dataset(src) as ds:
         if ds.is_reference:
             raise DatasetError(f"{src}: already in the reference layout; nothing to export")
