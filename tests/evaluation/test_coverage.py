@@ -25,14 +25,7 @@ from beadsight.model import UNet
 from beadsight.train.trainer import TrainConfig, train
 
 SPAN = 15
-
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_short_presses_are_evaluated_on_every_frame_with_history(make_dataset, tiny_model):

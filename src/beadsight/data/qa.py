@@ -135,30 +135,14 @@ def plot_qa(qa: dict[str, Any], path: Path) -> Path:
     geometry = qa.get("geometry", {})
     half = float(geometry.get("sensor_size_mm", 41.0)) / 2
     reach = float(geometry.get("press_range_mm", 13.75))
-    ax.add_patch(
-        Rectangle(
-            (-half, -half),
-            2 * half,
-            2 * half,
-            fill=False,
-            ls="--",
-            lw=0.8,
-            color="0.5",
-            label="field of view",
+    for side, ls, color, label in (
+        (half, "--", "0.5", "field of view"),
+        (reach, ":", "tab:blue", "press range"),
+    ):
+        corner, width = (-side, -side), 2 * side
+        ax.add_patch(
+            Rectangle(corner, width, width, fill=False, ls=ls, lw=0.8, color=color, label=label)
         )
-    )
-    ax.add_patch(
-        Rectangle(
-            (-reach, -reach),
-            2 * reach,
-            2 * reach,
-            fill=False,
-            ls=":",
-            lw=0.8,
-            color="tab:blue",
-            label="press range",
-        )
-    )
     if len(xy):
         sc = ax.scatter(
             xy[:, 0], xy[:, 1], c=peak, cmap="viridis", s=28, edgecolors="k", linewidths=0.3

@@ -159,9 +159,7 @@ def _indices(training: dict, key: str) -> np.ndarray | None:
 def _reference_split(model: PressureModel, ds: Dataset, split: str) -> SplitSelection:
     """The reference checkpoint's own test frames, if ``ds`` is the file they index."""
     training = model.meta.training
-    refuse = (
-        f"--split {split} refused for the reference checkpoint {model.source} on {ds.path}: "
-    )
+    refuse = f"--split {split} refused for the reference checkpoint {model.source} on {ds.path}: "
     if split == "val":
         raise EvaluationError(
             refuse + "the reference stores no validation split (only train_indices and "

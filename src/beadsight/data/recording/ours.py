@@ -28,13 +28,13 @@ from beadsight.data.recording.logs import (
     RecordingError,
 )
 from beadsight.data.recording.text import (
-    Table,
     finite_rows,
     floats,
     json_lines,
     parse_rows,
     read_json,
     read_records,
+    read_table,
 )
 from beadsight.data.recording.video import probe_video
 
@@ -104,12 +104,9 @@ def _read_frames(path: Path, warnings: list[str]) -> FrameLog:
 
 
 def _read_force(path: Path, warnings: list[str]) -> ForceLog:
-    if not path.exists():
-        warnings.append(f"{path.name} missing: no force readings")
-        table = Table(path, [], np.zeros(0, np.int64))
-    else:
-        records = read_records(path, "\n", warnings)
-        table = parse_rows(path, records, len(FORCE_COLUMNS), warnings, FORCE_COLUMNS)
+    table = read_table(
+        path, len(FORCE_COLUMNS), warnings, "no force readings", header=FORCE_COLUMNS
+    )
     f = {name: floats(table, k, warnings, name) for k, name in enumerate(FORCE_COLUMNS[:4])}
     ok = finite_rows(table, {k: f[k] for k in ("t_unix", "grams")}, warnings)
     seq = f["seq"][ok]
@@ -124,13 +121,15 @@ def _read_force(path: Path, warnings: list[str]) -> ForceLog:
 
 
 def _read_printer(path: Path, centre: tuple[float, float], warnings: list[str]) -> MoveLog:
-    if not path.exists():
-        warnings.append(f"{path.name} missing: no printer commands")
-        table = Table(path, [], np.zeros(0, np.int64))
-    else:  # gcode (3rd column) has no commas: split on all of them
-        records = read_records(path, "\n", warnings)
-        ncols = len(PRINTER_COLUMNS)
-        table = parse_rows(path, records, ncols, warnings, PRINTER_COLUMNS, split_all=True)
+    # gcode (3rd column) has no commas: split on all of them
+    table = read_table(
+        path,
+        len(PRINTER_COLUMNS),
+        warnings,
+        "no printer commands",
+        header=PRINTER_COLUMNS,
+        split_all=True,
+    )
     t_unix, t_mono = (floats(table, k, warnings, PRINTER_COLUMNS[k]) for k in range(2))
     xyz = np.stack([floats(table, k, warnings, PRINTER_COLUMNS[k]) for k in (3, 4, 5)], axis=1)
     xyz = xyz.reshape(-1, 3)

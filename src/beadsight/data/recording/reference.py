@@ -35,12 +35,12 @@ from beadsight.data.recording.logs import (
     RecordingError,
 )
 from beadsight.data.recording.text import (
-    Table,
     finite_rows,
     floats,
     parse_rows,
     read_json,
     read_records,
+    read_table,
 )
 from beadsight.data.recording.video import probe_video
 from beadsight.geometry import force_to_newtons
@@ -124,11 +124,7 @@ def _read_frames(path: Path, warnings: list[str]) -> tuple[FrameLog, dict[int, P
 
 
 def _read_force(path: Path, params: dict, warnings: list[str]) -> ForceLog:
-    if not path.exists():
-        warnings.append(f"{path.name} missing: no force readings")
-        table = Table(path, [], np.zeros(0, np.int64))
-    else:
-        table = parse_rows(path, read_records(path, "\n", warnings), 2, warnings)
+    table = read_table(path, 2, warnings, "no force readings")
     t = floats(table, 0, warnings, "unix_time")
     value = floats(table, 1, warnings, "value")
     ok = finite_rows(table, {"unix_time": t, "value": value}, warnings)
@@ -153,11 +149,7 @@ def _read_printer(
     decided from the data: if the G-code's own X/Y equal the logged x, y, they are
     absolute; otherwise if they lie within the press range around 0 they are offsets.
     """
-    if not path.exists():
-        warnings.append(f"{path.name} missing: no printer commands")
-        table = Table(path, [], np.zeros(0, np.int64))
-    else:
-        table = parse_rows(path, read_records(path, "\r", warnings), 4, warnings)
+    table = read_table(path, 4, warnings, "no printer commands", sep="\r")
     t = floats(table, 0, warnings, "unix_time")
     x = floats(table, 1, warnings, "x")
     y = floats(table, 2, warnings, "y")

@@ -99,6 +99,25 @@ def parse_rows(
     return Table(path, rows, np.asarray(lines, np.int64))
 
 
+def read_table(
+    path: Path,
+    ncols: int,
+    warnings: list[str],
+    missing: str,
+    *,
+    sep: str = "\n",
+    header: tuple[str, ...] | None = None,
+    split_all: bool = False,
+) -> Table:
+    """:func:`parse_rows` of a log file; an absent file is an empty table and the warning
+    ``"<name> missing: <missing>"``."""
+    if not path.exists():
+        warnings.append(f"{path.name} missing: {missing}")
+        return Table(path, [], np.zeros(0, np.int64))
+    records = read_records(path, sep, warnings)
+    return parse_rows(path, records, ncols, warnings, header, split_all=split_all)
+
+
 def floats(table: Table, col: int, warnings: list[str], name: str | None = None) -> np.ndarray:
     """Column ``col`` as float64: an empty field is NaN (not recorded); text that is not a
     number is NaN and reported with its lines."""
