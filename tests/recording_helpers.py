@@ -141,8 +141,16 @@ def write_reference_raw(
     videos=2,
     absolute_xy: bool = False,
     fourcc: str = "XVID",
+    counter: bool = False,
+    command_blocks: bool = False,
 ) -> Path:
-    """A raw session in the reference format (XVID videos, text logs)."""
+    """A raw session in the reference format (XVID videos, text logs).
+
+    counter: force values as the reference sketch (Scale_Reading.ino) prints them,
+    ``grams + 10000 * i`` with ``i`` cycling 0..9 line by line. command_blocks: the
+    genuine printer log record format, one ``\r``-terminated record per command block
+    (all G-code lines of a press in one record, separated by ``\n``).
+    """
     path.mkdir(parents=True, exist_ok=True)
     times = tl.frame_times()
     per = int(np.ceil(len(times) / videos))
@@ -158,8 +166,9 @@ def write_reference_raw(
         (path / f"video_log_{v}.txt").write_text("".join(lines))
     ft = tl.force_times()
     grams = tl.force_n(ft) / G_TO_N
+    values = [g + 10000 * (k % 10) if counter else g for k, g in enumerate(grams)]
     (path / "force_log.txt").write_text(
-        "".join(f"{float(T0_UNIX + t)!r},{g:.2f}\n" for t, g in zip(ft, grams, strict=True))
+        "".join(f"{float(T0_UNIX + t)!r},{v:.2f}\n" for t, v in zip(ft, values, strict=True))
     )
     records = []
     for t, gcode, x, y, _z, press in tl.commands():
@@ -169,8 +178,12 @@ def write_reference_raw(
             lx, ly = x, y
         else:
             lx, ly = x - CENTRE[0], y - CENTRE[1]
-        records.append(f"{float(T0_UNIX + t)!r},{lx},{ly},{gcode}\r")
-    (path / "printer_log.txt").write_text("".join(records), newline="")
+        if command_blocks and records and press >= 0 and records[-1][3] == press:
+            records[-1][4].append(gcode)  # the rest of the press's block
+            continue
+        records.append([float(T0_UNIX + t), lx, ly, press, [gcode]])
+    text = "".join(f"{t!r},{lx},{ly},{chr(10).join(block)}\r" for t, lx, ly, _, block in records)
+    (path / "printer_log.txt").write_text(text, newline="")
     params = {
         "resolution": [w, h],
         "fps": tl.fps,

@@ -365,6 +365,7 @@ def _reference_meta(obj: dict[str, Any], path: Path) -> tuple[CheckpointMeta, di
             "force_unit": str(info.get("force_unit", "g")),
             "g_to_n": REFERENCE_G_TO_N,
         },
+        training=_reference_training(obj),
     )
     return meta, state
 
@@ -427,6 +428,20 @@ def _check_meta(meta: CheckpointMeta, state: dict[str, torch.Tensor], path: Path
             raise CheckpointError(
                 f"{path}: model {key} is {value} in the metadata but {have[key]} in the weights"
             )
+
+
+def _reference_training(obj: dict[str, Any]) -> dict[str, Any]:
+    """The reference's split: window-end frame indices into the file at dataset_path
+    (read by ``evaluate --split test``); indices that are not integers are left out."""
+    out: dict[str, Any] = {"dataset_path": str(obj.get("dataset_path", ""))}
+    for key in ("train_indices", "test_indices"):
+        try:
+            values = np.asarray(obj[key], dtype=np.float64).reshape(-1)
+        except (KeyError, TypeError, ValueError):
+            continue
+        if np.isfinite(values).all() and np.array_equal(values, np.round(values)):
+            out[key] = values.astype(np.int64).tolist()
+    return out
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> PressureModel:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -36,6 +37,22 @@ class WriteError(BeadSightError):
     """A file could not be written (disk full, no permission, ...); names the file."""
 
 
+class OutputExistsError(BeadSightError):
+    """An output would replace an existing file (or is a folder); names it and the fix."""
+
+
+def refuse_existing(path: str | Path, overwrite: bool = False, flag: str = "--overwrite") -> Path:
+    """Refuse to write ``path`` over anything that exists unless ``overwrite`` (never a folder)."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputExistsError(f"{path}: is a folder; expected the name of a file to write")
+    if (path.exists() or path.is_symlink()) and not overwrite:
+        raise OutputExistsError(
+            f"{path}: already exists; choose another output name, or pass {flag} to replace it"
+        )
+    return path
+
+
 def describe_os_error(e: OSError) -> str:
     """A short cause for a failed write: 'disk full', 'file size limit reached', ..."""
     if e.errno in (errno.ENOSPC, errno.EDQUOT):
@@ -43,6 +60,19 @@ def describe_os_error(e: OSError) -> str:
     if e.errno == errno.EFBIG:
         return "file size limit reached"
     return e.strerror or str(e)
+
+
+def describe_write_failure(e: BaseException) -> str:
+    """The cause of a failed write from any library's error: ``describe_os_error`` of its
+    errno, also when the errno is only in the text (h5py: ``... errno = 28, ...``)."""
+    number = getattr(e, "errno", None)
+    if not number:
+        match = re.search(r"errno = (\d+)", str(e))
+        number = int(match.group(1)) if match else None
+    if number:
+        return describe_os_error(OSError(number, os.strerror(number)))
+    text = str(e)
+    return text.splitlines()[0] if text else type(e).__name__
 
 
 def write_error(path: str | Path, e: OSError) -> WriteError:

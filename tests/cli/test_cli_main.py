@@ -177,9 +177,9 @@ def _boom(*args, **kwargs):
 
 
 def test_internal_errors_say_so_with_the_traceback_only_under_v(monkeypatch, tmp_path, capsys):
-    import beadsight.data.dataset
+    import beadsight.data.reference_file
 
-    monkeypatch.setattr(beadsight.data.dataset, "import_reference", _boom)
+    monkeypatch.setattr(beadsight.data.reference_file, "import_reference", _boom)
     argv = ["import-reference", str(tmp_path / "ref.hdf5"), "--out", str(tmp_path / "o.h5")]
     assert main(argv) == 70
     err = capsys.readouterr().err

@@ -49,10 +49,19 @@ def test_split_is_seeded_disjoint_and_complete():
     assert not (split_presses(50, seed=4)["test"] == a["test"]).all()
 
 
-def test_window_ends_stay_inside_one_valid_press_cycle():
+def test_window_ends_cover_valid_history_across_press_boundaries():
+    """Issue 13 item 7: a window needs span valid, unbroken frames, whatever press they
+    belong to; the end frame's press decides its split."""
     press_id = np.array([0] * 6 + [1] * 6)
     valid = np.ones(12, bool)
     valid[9] = False
-    assert window_ends(press_id, valid, 4).tolist() == [3, 4, 5]
-    assert window_ends(press_id, valid, 2).tolist() == [1, 2, 3, 4, 5, 7, 8, 11]
-    assert window_ends(press_id, valid, 2, presses=[1]).tolist() == [7, 8, 11]
+    assert window_ends(press_id, valid, 4).tolist() == [3, 4, 5, 6, 7, 8]
+    assert window_ends(press_id, valid, 2).tolist() == [1, 2, 3, 4, 5, 6, 7, 8, 11]
+    assert window_ends(press_id, valid, 2, presses=[1]).tolist() == [6, 7, 8, 11]
+    assert window_ends(press_id, valid, 2, presses=[0]).tolist() == [1, 2, 3, 4, 5]
+    # a break (dropped frames) starts the history again, like an invalid frame
+    breaks = np.zeros(12, bool)
+    breaks[4] = True
+    assert window_ends(press_id, valid, 4, breaks=breaks).tolist() == [3, 7, 8]
+    # frames of no press cycle (a recording without presses) end no window
+    assert window_ends(np.full(12, -1), valid, 2).tolist() == []

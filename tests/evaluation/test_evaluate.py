@@ -177,7 +177,9 @@ def test_image_size_mismatch(make_dataset, model_file):
 
 
 def test_window_mismatch(make_dataset, model_file, tmp_path, capsys):
-    data = make_dataset(frames_per_press=10)
+    # 10 frames in all: no frame has 15 frames of history (windows may cross presses,
+    # so a longer recording of short presses would do)
+    data = make_dataset(presses=1, frames_per_press=10)
     with pytest.raises(EvaluationError, match="needs 15 consecutive valid frames") as err:
         evaluate(model_file, data, split="all", device="cpu", progress=False)
     assert str(model_file) in str(err.value) and str(data) in str(err.value)

@@ -135,7 +135,7 @@ def test_input_noise_only_in_training(make_dataset, tmp_path, tiny_model):
 def test_train_cli_writes_a_complete_run_folder(make_dataset, tmp_path, capsys):
     data = make_dataset()
     run = tmp_path / "run"
-    assert cli("--data", data, "--out", run, "--steps", 4, "--batch-size", 32, *FAST) == 0
+    assert cli("--data", data, "--out", run, "--steps", 4, "--batch-size", 40, *FAST) == 0
     assert str(run) in capsys.readouterr().out
     for name in ("config.json", "split.json", "metrics.jsonl", "best.pt", "last.pt"):
         assert (run / name).is_file(), name
@@ -156,7 +156,12 @@ def test_train_cli_writes_a_complete_run_folder(make_dataset, tmp_path, capsys):
     train_lines = [line for line in lines if line["event"] == "train"]
     val_lines = [line for line in lines if line["event"] == "val"]
     assert train_lines[-1]["step"] == 4 and train_lines[-1]["samples_per_s"] > 0
-    assert len(val_lines) == 1 and val_lines[0]["epoch"] == 1.0  # 104 windows / 32 = 4 steps
+    # every frame of a train press with 14 frames of history ends a window (item 7)
+    with open_dataset(data) as ds:
+        frames = np.flatnonzero(np.isin(ds.press_id, split["train"]))
+        assert split["windows"]["train"] == int((frames >= 14).sum())
+    assert split["windows"]["train"] == 160  # train presses 2-5: all have the history
+    assert len(val_lines) == 1 and val_lines[0]["epoch"] == 1.0  # 160 windows / 40 = 4 steps
     assert math.isfinite(val_lines[0]["val_loss"]) and val_lines[0]["val_mae_kpa"] > 0
 
     for name in ("best.pt", "last.pt"):
@@ -275,7 +280,11 @@ def test_fine_tune_from_a_checkpoint_with_a_cosine_schedule(make_dataset, tmp_pa
     split = json.loads((strided / "split.json").read_text())
     base_split = json.loads((base / "split.json").read_text())
     assert split["frame_stride"] == 2
-    assert split["windows"]["train"] < base_split["windows"]["train"]  # 14 more frames each
+    # a window needs 28 frames of history instead of 14, whatever press they belong to
+    with open_dataset(data) as ds:
+        frames = np.flatnonzero(np.isin(ds.press_id, split["train"]))
+    assert split["windows"]["train"] == int((frames >= 28).sum())
+    assert base_split["windows"]["train"] == int((frames >= 14).sum())
 
     # an architecture that does not fit the checkpoint names the field
     with pytest.raises(ConfigError, match="width is 8 in the checkpoint but 16"):
@@ -310,8 +319,8 @@ def test_bad_training_inputs_name_the_field(make_dataset, tmp_path):
     odd = make_dataset(image_size=60, name="odd.h5")
     with pytest.raises(ConfigError, match="image_size 60"):
         train(TrainConfig(data=str(odd), out=out, width=8, steps=1))
-    with pytest.raises(ConfigError, match="window 50"):
-        train(TrainConfig(data=str(data), out=out, width=8, steps=1, window=50))
+    with pytest.raises(ConfigError, match="window 50"):  # spans 246 frames; the data has 240
+        train(TrainConfig(data=str(data), out=out, width=8, steps=1, window=50, frame_stride=5))
     with pytest.raises(CheckpointError, match="no checkpoint to resume"):
         train(TrainConfig(data=str(data), out=out, width=8, steps=1, resume=True))
     with pytest.raises(DatasetError, match="missing.h5"):

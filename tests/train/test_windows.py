@@ -58,9 +58,13 @@ def test_window_is_causal_and_labelled_by_its_newest_frame(tiny):
             ds.force_n[[end]], ds.position_mm[[end]], ds.contact[[end]], ds.geometry
         )[0]
         np.testing.assert_allclose(target.numpy(), expected, atol=1e-6)
-        # every frame of the window is valid and in the same press cycle
+        # every frame of the window is valid, and the frames follow each other in time
         assert ds.valid[end - T + 1 : end + 1].all()
-        assert len(set(ds.press_id[end - T + 1 : end + 1].tolist())) == 1
+        steps = np.diff(ds.timestamp_s[end - T + 1 : end + 1])
+        np.testing.assert_allclose(steps, 1 / ds.fps, atol=1e-6)
+    # the recording is continuous and every frame valid: every frame with T - 1 frames
+    # before it ends a window, across press boundaries (issue 13 item 7)
+    np.testing.assert_array_equal(labels.ends, np.arange(T - 1, len(ds)))
     # windows in contact have non-zero labels, windows out of contact zero
     some_contact = np.flatnonzero(labels.contact)[0]
     assert windows[int(some_contact)][1].sum() > 0
@@ -213,18 +217,29 @@ def test_epoch_batches_are_seeded_and_shard_like_distributed_sampler():
     assert pairs1 == pairs2
 
 
-def test_splits_are_seeded_and_windows_stay_in_their_presses(tiny):
+def test_splits_are_seeded_and_windows_end_in_their_presses(tiny):
     _, ds = tiny
     s0, s0b, s1 = (split_presses(ds.num_presses, seed=s) for s in (0, 0, 1))
     assert all(np.array_equal(s0[k], s0b[k]) for k in s0)
     assert any(not np.array_equal(s0[k], s1[k]) for k in s0)
     all_ids = np.concatenate([s0[k] for k in ("train", "val", "test")])
     assert sorted(all_ids.tolist()) == list(range(ds.num_presses))
+    crossing = 0
     for name in ("train", "val", "test"):
         labels = _labels(ds, presses=s0[name])
         assert len(labels) > 0
+        # a window belongs to the split of its end frame's press ...
+        assert set(ds.press_id[labels.ends].tolist()) <= set(s0[name].tolist())
+        # ... and every frame of that press with T - 1 frames before it ends one
+        in_split = np.flatnonzero(np.isin(ds.press_id, s0[name]))
+        np.testing.assert_array_equal(labels.ends, in_split[in_split >= T - 1])
+        # its history may reach back into the previous press, never further
         frames = np.flatnonzero(window_frame_mask(labels.ends, T, len(ds)))
-        assert set(ds.press_id[frames].tolist()) <= set(s0[name].tolist())
+        allowed = set(s0[name].tolist()) | {p - 1 for p in s0[name].tolist()}
+        assert set(ds.press_id[frames].tolist()) <= allowed
+        starts = labels.ends - T + 1
+        crossing += int((ds.press_id[starts] != ds.press_id[labels.ends]).sum())
+    assert crossing > 0
 
 
 def test_pixel_stats_and_fingerprint(tiny, make_dataset):

@@ -1,10 +1,11 @@
-"""Dataset commands: ``beadsight info`` (datasets and checkpoints) and
-``beadsight import-reference``."""
+"""Dataset commands: ``beadsight info`` (datasets and checkpoints),
+``beadsight import-reference`` and ``beadsight export-dataset``."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 
@@ -23,6 +24,14 @@ def register(commands) -> None:
         arguments=_import_arguments,
         run=_import,
     )
+    commands.add(
+        "export-dataset",
+        help="write a dataset in the reference's processed HDF5 layout",
+        description="Write DATA with the names, dtypes, units (grams), BGR frames and "
+        "attributes of the reference's raw_data_process.py, for the reference's own scripts.",
+        arguments=_export_arguments,
+        run=_export,
+    )
 
 
 def _info_arguments(p: argparse.ArgumentParser) -> None:
@@ -35,8 +44,21 @@ def _import_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output dataset .h5")
 
 
+def _export_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.data.reference_file import EXPORT_FORMATS
+
+    p.add_argument("data", help="dataset .h5 (this project's format)")
+    p.add_argument("--format", choices=EXPORT_FORMATS, default="reference")
+    p.add_argument("--out", required=True, help="output .h5 file")
+    p.add_argument(
+        "--compression-level", type=int, default=0, help="gzip level of the images, 0 = none"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+
+
 def dataset_summary(path: str) -> dict:
     from beadsight.data.dataset import open_dataset
+    from beadsight.data.timing import duration
 
     with open_dataset(path) as ds:
         contact = ds.force_n[ds.contact]
@@ -49,7 +71,7 @@ def dataset_summary(path: str) -> dict:
             "image_size_px": ds.image_size,
             "channel_order": ds.channel_order,
             "fps": ds.fps,
-            "duration_s": float(ds.timestamp_s[-1] - ds.timestamp_s[0]) if len(ds) else 0.0,
+            **duration(ds),
             "peak_force_n": float(contact.max()) if len(contact) else 0.0,
             "mean_contact_force_n": float(contact.mean()) if len(contact) else 0.0,
             "geometry": ds.geometry.to_dict(),
@@ -72,6 +94,8 @@ def _info(args: argparse.Namespace) -> int:
         summary = checkpoint_summary(path)
     else:  # a dataset, or a missing path, directory or device: open_dataset names it
         summary = dataset_summary(args.file)
+    if summary.get("warning"):
+        print(f"warning: {summary['warning']}", file=sys.stderr)
     if args.json:
         print(json.dumps(summary))
         return 0
@@ -81,8 +105,18 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
-    from beadsight.data.dataset import import_reference
+    from beadsight.data.reference_file import import_reference
 
     out = import_reference(args.source, args.out)
     print(f"wrote {out}")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from beadsight.data.reference_file import export_reference
+
+    out = export_reference(
+        args.data, args.out, compression_level=args.compression_level, overwrite=args.overwrite
+    )
+    print(f"wrote {out} ({args.format} layout)")
     return 0

@@ -76,6 +76,18 @@ PROCESS_FLAGS = (
     ("decode_scale", "JPEG decode reduction; 0 = automatic", {"choices": (0, 1, 2, 4, 8)}),
     ("workers", "threads (0 = one per core)"),
     ("compression", "HDF5 compression of the frames", {"choices": ("gzip", "lzf"), "type": str}),
+    (
+        "force_counter",
+        "decode the reference scale sketch's +10000*i counter in the force log: auto (when "
+        "the values step through its 0..9 cycle), on, off",
+        {"choices": ("auto", "on", "off")},
+    ),
+    (
+        "scale_capacity_n",
+        "scale capacity in newtons: readings beyond it are reported and the frames labelled "
+        "from them are invalid",
+        {"flag": "--scale-capacity", "metavar": "N"},
+    ),
 )
 
 
@@ -225,6 +237,7 @@ def _process_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("raw", type=Path, help="raw recording folder")
     p.add_argument("--out", type=Path, required=True, help="dataset file to write (.h5)")
     add_fields(p, ProcessConfig, PROCESS_FLAGS)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -233,7 +246,9 @@ def _process(args: argparse.Namespace) -> int:
     from beadsight.data.process import ProcessConfig, process_recording, qa_paths
 
     config = ProcessConfig(**field_values(args, ProcessConfig))
-    qa = process_recording(args.raw, args.out, config, progress=not args.no_progress)
+    qa = process_recording(
+        args.raw, args.out, config, progress=not args.no_progress, overwrite=args.overwrite
+    )
     json_path, png_path = qa_paths(args.out)
     invalid = ", ".join(f"{k} {v}" for k, v in qa["invalid_frames"].items()) or "none"
     dropped = qa["dropped_frames"]["total"]
@@ -246,6 +261,8 @@ def _process(args: argparse.Namespace) -> int:
             f"force {qa['force_n']['min']:.2f} .. {qa['force_n']['max']:.2f} N; "
             f"{qa['frames_per_s']:.0f} frames/s"
         )
+    if qa["force_counter"]["decoded"]:
+        print(qa["force_counter"]["message"])
     for w in qa["warnings"]:
         print(f"warning: {w}")
     print(f"QA: {json_path}, {png_path}")

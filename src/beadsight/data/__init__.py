@@ -1,11 +1,14 @@
 """Data: datasets (HDF5), press segmentation, training windows, raw recordings, processing."""
 
-from beadsight.data.dataset import (
-    Dataset,
-    DatasetError,
-    DatasetWriter,
-    import_reference,
-    open_dataset,
-)
+from beadsight.data.dataset import Dataset, DatasetError, open_dataset
+from beadsight.data.reference_file import export_reference, import_reference
+from beadsight.data.writer import DatasetWriter
 
-__all__ = ["Dataset", "DatasetError", "DatasetWriter", "import_reference", "open_dataset"]
+__all__ = [
+    "Dataset",
+    "DatasetError",
+    "DatasetWriter",
+    "export_reference",
+    "import_reference",
+    "open_dataset",
+]

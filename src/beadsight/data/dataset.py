@@ -1,26 +1,22 @@
-"""The BeadSight dataset (HDF5): reading, writing, and reference-file import.
+"""The BeadSight dataset (HDF5): reading.
 
 See docs/data-format.md for the layout. :func:`open_dataset` reads this project's
 files and the reference processed files alike and presents them through one
 :class:`Dataset` object (forces in newtons, positions in mm, float64 timestamps,
-press segmentation). :class:`DatasetWriter` writes incrementally to a ``.partial``
-file that is renamed into place on :meth:`DatasetWriter.close`.
+press segmentation). Writing: :class:`beadsight.data.writer.DatasetWriter`; the
+reference layout: :mod:`beadsight.data.reference_file`.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import h5py
 import numpy as np
 
-from beadsight import __version__
 from beadsight.config import ContactThresholds, SensorGeometry
 from beadsight.data.presses import segment_presses
 from beadsight.errors import BeadSightError
@@ -272,166 +268,16 @@ def _read(f: h5py.File, path: Path, thresholds: ContactThresholds) -> Dataset:
     )
 
 
-# --- writing ------------------------------------------------------------------------
-class DatasetWriter:
-    """Write a dataset incrementally; safe against crashes mid-write.
+def __getattr__(name: str) -> Any:
+    """Names that moved out of this module, still importable from it: ``DatasetWriter``
+    (:mod:`beadsight.data.writer`) and ``import_reference``
+    (:mod:`beadsight.data.reference_file`)."""
+    if name == "DatasetWriter":
+        from beadsight.data.writer import DatasetWriter
 
-    Data goes to ``<path>.partial`` (flushed after every :meth:`append`, so what
-    was appended stays readable after a crash); :meth:`close` adds the press
-    segmentation and pixel statistics and renames the file to ``path``.
+        return DatasetWriter
+    if name == "import_reference":
+        from beadsight.data.reference_file import import_reference
 
-    Usage::
-
-        with DatasetWriter(path, geometry, fps=30, provenance={...}) as w:
-            w.append(frames_rgb, force_n, position_mm, valid, timestamp_s)
-    """
-
-    def __init__(
-        self,
-        path: str | Path,
-        geometry: SensorGeometry,
-        *,
-        channel_order: str = "RGB",
-        fps: float = 30.0,
-        provenance: dict[str, Any] | None = None,
-        compression: str | None = None,
-        thresholds: ContactThresholds = ContactThresholds(),
-    ):
-        if channel_order not in ("RGB", "BGR"):
-            raise ValueError(f"channel_order must be RGB or BGR, got {channel_order!r}")
-        self.path = Path(path)
-        self.partial = self.path.with_name(self.path.name + ".partial")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.geometry = geometry
-        self.thresholds = thresholds
-        s = geometry.image_size_px
-        self._f = h5py.File(self.partial, "w")
-        self._f.attrs.update(
-            {
-                "format": FORMAT,
-                "format_version": FORMAT_VERSION,
-                "fps": float(fps),
-                "geometry": geometry.to_json(),
-                "thresholds": thresholds.to_json(),
-                "provenance": json.dumps(
-                    {
-                        "created_unix": time.time(),
-                        "beadsight_version": __version__,
-                        **(provenance or {}),
-                    },
-                    default=str,
-                ),
-            }
-        )
-        frames = self._f.create_dataset(
-            "frames",
-            (0, s, s, 3),
-            np.uint8,
-            maxshape=(None, s, s, 3),
-            chunks=(1, s, s, 3),
-            compression=compression,
-        )
-        frames.attrs["channel_order"] = channel_order
-        spec = {
-            "force": ((), np.float64, "N"),
-            "position": ((2,), np.float64, "mm"),
-            "valid": ((), bool, ""),
-            "timestamp": ((), np.float64, "s (unix)"),
-        }
-        for name, (shape, dtype, unit) in spec.items():
-            ds = self._f.create_dataset(
-                name, (0, *shape), dtype, maxshape=(None, *shape), chunks=(4096, *shape)
-            )
-            if unit:
-                ds.attrs["unit"] = unit
-        self._sum = np.zeros(3)
-        self._sumsq = np.zeros(3)
-        self._count = 0
-
-    def __len__(self) -> int:
-        return int(self._f["force"].shape[0])
-
-    def append(self, frames, force_n, position_mm, valid, timestamp_s) -> None:
-        """frames: (n, S, S, 3) uint8; force_n: (n,) N; position_mm: (n, 2); valid: (n,) bool;
-        timestamp_s: (n,) float64 unix seconds."""
-        frames = np.asarray(frames)
-        n = len(frames)
-        s = self.geometry.image_size_px
-        if frames.shape[1:] != (s, s, 3) or frames.dtype != np.uint8:
-            raise ValueError(
-                f"{self.path}: frames must be (n, {s}, {s}, 3) uint8, got {frames.shape} {frames.dtype}"
-            )
-        cols = {
-            "force": np.asarray(force_n, np.float64).reshape(n),
-            "position": np.asarray(position_mm, np.float64).reshape(n, 2),
-            "valid": np.asarray(valid, bool).reshape(n),
-            "timestamp": np.asarray(timestamp_s, np.float64).reshape(n),
-        }
-        start = len(self)
-        for name, values in {"frames": frames, **cols}.items():
-            ds = self._f[name]
-            ds.resize(start + n, axis=0)
-            ds[start:] = values
-        pixels_per_frame = frames.shape[1] * frames.shape[2]
-        for frame in frames:  # cv2 avoids a float64 copy of the batch (~0.1 ms per frame)
-            mean, std = (v.ravel() for v in cv2.meanStdDev(frame))
-            self._sum += mean * pixels_per_frame
-            self._sumsq += (std * std + mean * mean) * pixels_per_frame
-        self._count += n * pixels_per_frame
-        self._f.flush()
-
-    def close(self) -> Path:
-        """Finish the file (presses, pixel stats) and move it into place. Returns the path."""
-        if not self._f.id.valid:
-            return self.path
-        f = self._f
-        force, valid, position = f["force"][()], f["valid"][()], f["position"][()]
-        contact, press_id, presses = segment_presses(force, valid, position, self.thresholds)
-        f.create_dataset("contact", data=contact)
-        f.create_dataset("press_id", data=press_id)
-        f.create_dataset("presses", data=presses.reshape(-1, 2))
-        if self._count:
-            mean = self._sum / self._count
-            f.attrs["pixel_mean"] = mean
-            f.attrs["pixel_std"] = np.sqrt(np.maximum(self._sumsq / self._count - mean**2, 0.0))
-        f.close()
-        os.replace(self.partial, self.path)
-        return self.path
-
-    def abort(self) -> None:
-        """Close without finishing; the ``.partial`` file stays for inspection."""
-        if self._f.id.valid:
-            self._f.close()
-
-    def __enter__(self) -> DatasetWriter:
-        return self
-
-    def __exit__(self, exc_type, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
-
-
-def import_reference(src: str | Path, dst: str | Path, chunk: int = 256) -> Path:
-    """Convert a reference processed HDF5 file to this project's format (frames -> RGB)."""
-    with open_dataset(src) as ds:
-        if not ds.is_reference:
-            raise DatasetError(f"{src}: already a beadsight dataset; nothing to import")
-        fps = ds.fps
-        with DatasetWriter(
-            dst,
-            ds.geometry,
-            fps=fps,
-            provenance={"source": "reference-import", "imported_from": str(src)},
-        ) as w:
-            for i in range(0, len(ds), chunk):
-                j = min(i + chunk, len(ds))
-                w.append(
-                    ds.read_frames(i, j),
-                    ds.force_n[i:j],
-                    ds.position_mm[i:j],
-                    ds.valid[i:j],
-                    ds.timestamp_s[i:j],
-                )
-    return Path(dst)
+        return import_reference
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

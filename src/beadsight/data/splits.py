@@ -2,14 +2,22 @@
 
 Splitting by press (not by frame) keeps the frames of one press together, so a
 model is never tested on frames of a press it trained on. Both training and
-evaluation select samples through :func:`window_ends`, so they agree exactly.
+evaluation select samples through :func:`dataset_window_ends`, so they agree
+exactly: every frame with a full window of valid, continuous history, also when
+that history reaches into the previous press.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from beadsight.config import DEFAULT_SPLIT_FRACTIONS as DEFAULT_FRACTIONS
+from beadsight.data.timing import frame_breaks
+
+if TYPE_CHECKING:
+    from beadsight.data.dataset import Dataset
 
 SPLITS = ("train", "val", "test")
 
@@ -43,30 +51,55 @@ def split_presses(
 
 
 def window_ends(
-    press_id: np.ndarray, valid: np.ndarray, window: int, presses: np.ndarray | None = None
+    press_id: np.ndarray,
+    valid: np.ndarray,
+    span: int,
+    presses: np.ndarray | None = None,
+    breaks: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Indices of frames that can end a window of ``window`` consecutive frames.
+    """Indices of frames that end a window of ``span`` consecutive frames of real history.
 
-    press_id: (N,) int press cycle of each frame; valid: (N,) bool.
-    presses: optional (K,) press ids to keep (e.g. one split's ids).
-    A frame ``i`` qualifies when frames ``i-window+1 .. i`` are all valid and all in
-    the same press cycle. returns: (M,) int64 sorted.
+    press_id: (N,) int press cycle of each frame; valid: (N,) bool; breaks: optional (N,)
+    bool, frame ``i`` does not directly follow frame ``i - 1`` (dropped frames; see
+    :func:`beadsight.data.timing.frame_breaks`). presses: optional (K,) press ids to
+    keep (e.g. one split's ids).
+
+    A frame ``i`` qualifies when it belongs to a press cycle and frames
+    ``i-span+1 .. i`` are all valid with no break after the first: the recording is
+    continuous, so the window may reach back into the previous press's frames. A
+    frame belongs to its own press's split whatever its window covers.
+    returns: (M,) int64 sorted.
     """
     press_id = np.asarray(press_id)
     valid = np.asarray(valid, dtype=bool)
     n = len(press_id)
-    if n < window:
+    if n < span:
         return np.zeros(0, dtype=np.int64)
-    ok = valid & (press_id >= 0)
-    new_cycle = np.ones(n, dtype=bool)
-    new_cycle[1:] = press_id[1:] != press_id[:-1]
-    # Length of the run of good frames of one press cycle ending at each frame.
+    fresh = np.zeros(n, bool) if breaks is None else np.asarray(breaks, bool)
+    # Length of the run of valid, unbroken frames ending at each frame.
     run = np.zeros(n, dtype=np.int64)
     count = 0
-    for i, (good, fresh) in enumerate(zip(ok.tolist(), new_cycle.tolist(), strict=True)):
-        count = 0 if not good else (1 if fresh else count + 1)
+    for i, (good, brk) in enumerate(zip(valid.tolist(), fresh.tolist(), strict=True)):
+        count = 0 if not good else (1 if brk else count + 1)
         run[i] = count
-    ends = np.flatnonzero(run >= window)
+    ends = np.flatnonzero((run >= span) & (press_id >= 0))
     if presses is not None:
         ends = ends[np.isin(press_id[ends], np.asarray(presses))]
     return ends.astype(np.int64)
+
+
+def dataset_window_ends(ds: Dataset, span: int, presses: np.ndarray | None = None) -> np.ndarray:
+    """:func:`window_ends` of dataset ``ds``, broken where its timestamps show dropped frames.
+
+    Training and evaluation select their frames through this one function."""
+    breaks = frame_breaks(ds.timestamp_s, ds.fps)
+    return window_ends(ds.press_id, ds.valid, span, presses, breaks)
+
+
+def valid_frames(ds: Dataset, presses: np.ndarray | None = None) -> np.ndarray:
+    """(M,) int64 indices of the valid frames of the press cycles ``presses`` (all if None):
+    what an evaluation could cover at best (``coverage`` = evaluated / these)."""
+    keep = ds.valid & (ds.press_id >= 0)
+    if presses is not None:
+        keep &= np.isin(ds.press_id, np.asarray(presses))
+    return np.flatnonzero(keep).astype(np.int64)

@@ -64,12 +64,12 @@ def animation_frames(
     """
     from beadsight.data.dataset import open_dataset
     from beadsight.data.labels import label_maps
-    from beadsight.data.splits import window_ends
+    from beadsight.data.splits import dataset_window_ends
     from beadsight.geometry import total_force_n
 
     with open_dataset(data) as ds:
         start, stop = (int(v) for v in ds.presses[press])
-        ends = window_ends(ds.press_id, ds.valid, model.window, np.array([press]))
+        ends = dataset_window_ends(ds, model.window, np.array([press]))
         lo, hi = start - ANIMATION_MARGIN_FRAMES, stop + ANIMATION_MARGIN_FRAMES
         ends = ends[(ends >= lo) & (ends < hi)][:count]
         if ends.size == 0:

@@ -1,25 +1,22 @@
 """Evaluate a checkpoint on a dataset: the paper's metrics, predictions, plots.
 
 :func:`evaluate` runs the model over every frame of the chosen split that ends a
-full window (the same frames training samples, via
-:func:`beadsight.data.splits.window_ends`), compares with the ground truth of
+full window of valid, continuous history (the same frames training samples, via
+:func:`beadsight.data.splits.dataset_window_ends`; a window may reach into the
+previous press), compares with the ground truth of
 :func:`beadsight.data.labels.label_maps`, and accumulates the metrics of
 :mod:`beadsight.evaluation.metrics` batch by batch. With ``out_dir`` it writes:
 
-* ``metrics.json``: the metrics (strict JSON, no NaN), counts, split, names;
+* ``metrics.json``: the metrics (strict JSON, no NaN), counts, split, names, and
+  ``coverage`` (frames evaluated / valid frames of the split);
 * ``predictions.h5``: ``pred_kpa``/``gt_kpa`` (N, H, W) float32 (gzip),
   ``force_gt_n``/``force_pred_n`` (N,) N, ``cop_gt_mm``/``cop_pred_mm`` (N, 2) mm
   (NaN where that map has no positive pressure), ``index`` (N,) dataset frame
   index, appended batch by batch under a temporary name;
 * ``examples.png``, ``region_error.png``, ``force_traces.png``.
 
-Memory stays bounded by the batch size whatever the dataset's length.
-
-Split selection: ``"test"``/``"val"`` use the press ids the training run stored in
-the checkpoint (``meta.training["split"]``) when they fit the dataset; otherwise
-the split is recomputed with :func:`beadsight.data.splits.split_presses` (with the
-run's fractions and seed when known) and a warning is logged. ``"all"`` uses
-every press.
+Memory stays bounded by the batch size whatever the dataset's length. Which
+presses or frames form a split: :mod:`beadsight.evaluation.selection`.
 """
 
 from __future__ import annotations
@@ -40,9 +37,7 @@ from beadsight.checkpoint import PressureModel
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
-from beadsight.data.splits import DEFAULT_FRACTIONS, SPLITS, split_presses, window_ends
-from beadsight.errors import BeadSightError
-from beadsight.evaluation.config import DEFAULT_DEVICE, DEFAULT_SPLIT, SPLIT_CHOICES
+from beadsight.evaluation.config import DEFAULT_DEVICE, DEFAULT_SPLIT
 from beadsight.evaluation.config import EVALUATE_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.evaluation.metrics import PAPER_METRICS, FrameMetrics, MetricsAccumulator
 from beadsight.evaluation.plots import (
@@ -52,9 +47,32 @@ from beadsight.evaluation.plots import (
     plot_region_errors,
 )
 from beadsight.evaluation.predict import IncrementalH5, as_model
+from beadsight.evaluation.selection import (
+    SPLIT_CHOICES,
+    EvaluationError,
+    SplitSelection,
+    coverage,
+    evaluation_frames,
+    select_split,
+    selection_ends,
+    subsample,
+)
 
 log = logging.getLogger(__name__)
 
+__all__ = [
+    "SPLIT_CHOICES",
+    "EvaluationError",
+    "SplitSelection",
+    "WindowReader",
+    "evaluate",
+    "evaluation_frames",
+    "evaluation_geometry",
+    "read_windows",
+    "select_split",
+    "subsample",
+    "write_metrics_json",
+]
 EXAMPLE_PRESSES = 4  # presses shown in examples.png (the frame of peak force of each)
 TRACE_PRESSES = 3  # presses shown in force_traces.png
 MEAN_MAP_MAX_FRAMES = 4096  # training frames averaged for the mean-map baseline
@@ -75,98 +93,6 @@ DEFINITIONS = {
     "region_mae_kpa": "per-frame MAE of all evaluated frames grouped by their press's commanded position on "
     "a 4x4 grid of the field of view; [row][col] in image orientation; null = no frames",
 }
-
-
-class EvaluationError(BeadSightError):
-    """The checkpoint and the dataset cannot be evaluated together; the message says why."""
-
-
-# --- split selection ----------------------------------------------------------------
-@dataclass(frozen=True)
-class SplitSelection:
-    """Which presses are evaluated, and which count as training presses (for baselines)."""
-
-    name: str  # "test", "val" or "all"
-    press_ids: np.ndarray  # (K,) int64 sorted
-    train_ids: np.ndarray  # (J,) int64 sorted
-    source: str  # "checkpoint", "recomputed" or "all"
-
-
-def _stored_split(training: dict, ds: Dataset) -> tuple[dict[str, np.ndarray] | None, str]:
-    """The checkpoint's stored press ids if they fit ``ds``; else (None, why not).
-
-    ``training`` is ``meta.training`` as the training run writes it: ``split``
-    ({"train", "val", "test"} press ids), ``dataset_fingerprint``
-    (:func:`beadsight.train.windows.dataset_fingerprint`), ``split_fractions``,
-    ``split_seed``. A stored ``num_presses`` (inside ``split``) is checked too.
-    """
-    stored = training.get("split")
-    if not isinstance(stored, dict):
-        return None, "the checkpoint stores no press split (meta.training['split'])"
-    try:
-        ids = {k: np.sort(np.asarray(stored[k], dtype=np.int64).reshape(-1)) for k in SPLITS}
-    except (KeyError, TypeError, ValueError) as e:
-        return None, f"the checkpoint's stored split is malformed ({e!r})"
-    stored_n = stored.get("num_presses")
-    if stored_n is not None and int(stored_n) != ds.num_presses:
-        return None, f"it was made for {stored_n} presses, the dataset has {ds.num_presses}"
-    largest = max((int(v.max()) for v in ids.values() if v.size), default=-1)
-    if largest >= ds.num_presses:
-        return None, f"it names press {largest}, the dataset has {ds.num_presses} presses"
-    stored_fp = training.get("dataset_fingerprint", stored.get("dataset_fingerprint"))
-    if stored_fp is not None:
-        from beadsight.train.windows import dataset_fingerprint
-
-        ours = dataset_fingerprint(ds)
-        if ours != stored_fp:
-            trained_on = training.get("dataset_path", "another dataset")
-            return None, (
-                f"it was made for {trained_on} (dataset_fingerprint {stored_fp}), and "
-                f"{ds.path} has fingerprint {ours}"
-            )
-    return ids, ""
-
-
-def _split_params(training: dict) -> tuple[tuple[float, float, float], int]:
-    """The training run's split fractions and seed (defaults: 70/10/20, seed 0)."""
-    stored = training.get("split") if isinstance(training.get("split"), dict) else {}
-    config = training.get("config") if isinstance(training.get("config"), dict) else {}
-    fractions = (
-        training.get("split_fractions")
-        or stored.get("fractions")
-        or config.get("split")
-        or DEFAULT_FRACTIONS
-    )
-    seed = training.get("split_seed", stored.get("seed", config.get("seed", 0)))
-    return tuple(float(f) for f in fractions), int(seed)  # type: ignore[return-value]
-
-
-def select_split(model: PressureModel, ds: Dataset, split: str) -> SplitSelection:
-    """Press ids to evaluate for ``split`` ("test", "val" or "all"); see the module doc."""
-    if split not in SPLIT_CHOICES:
-        raise EvaluationError(f"--split {split!r}: expected one of {SPLIT_CHOICES}")
-    everything = np.arange(ds.num_presses, dtype=np.int64)
-    if split == "all":
-        return SplitSelection("all", everything, everything, "all")
-    ids, why = _stored_split(model.meta.training, ds)
-    source = "checkpoint"
-    if ids is None:
-        fractions, seed = _split_params(model.meta.training)
-        try:
-            ids = split_presses(ds.num_presses, fractions, seed)
-        except ValueError as e:
-            raise EvaluationError(f"{model.source}: cannot recompute the split: {e}") from None
-        source = "recomputed"
-        log.warning(
-            "not using the checkpoint's %s split: %s; recomputed it with split_presses(%d, "
-            "fractions=%s, seed=%d)",
-            split,
-            why,
-            ds.num_presses,
-            fractions,
-            seed,
-        )
-    return SplitSelection(split, ids[split], ids["train"], source)
 
 
 # --- reading ------------------------------------------------------------------------
@@ -248,38 +174,6 @@ def evaluation_geometry(model: PressureModel, ds: Dataset, resize: bool = False)
             dg.finger_radius_mm,
         )
     return dg.with_image_size(model.image_size)
-
-
-def subsample(n: int, k: int) -> np.ndarray:
-    """``k <= n`` evenly spaced sorted indices into ``range(n)``, first and last included."""
-    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
-
-
-def evaluation_frames(
-    model: PressureModel, ds: Dataset, selection: SplitSelection, max_frames: int | None
-) -> np.ndarray:
-    """(M,) sorted dataset indices of the frames to evaluate (window ends of the split).
-
-    With ``max_frames``, that many frames evenly spaced over the whole split (a
-    quick estimate of the full evaluation that still covers every press).
-    """
-    if selection.press_ids.size == 0:
-        raise EvaluationError(
-            f"{ds.path}: the {selection.name!r} split has no presses ({ds.num_presses} in the "
-            "dataset); use --split all"
-        )
-    ends = window_ends(ds.press_id, ds.valid, model.window, selection.press_ids)
-    if ends.size == 0:
-        ids = selection.press_ids
-        lengths = [int((ds.valid & (ds.press_id == p)).sum()) for p in ids]
-        raise EvaluationError(
-            f"window mismatch: the checkpoint {model.source} needs {model.window} "
-            f"consecutive valid frames of one press, but the longest press cycle of the "
-            f"{selection.name!r} split of {ds.path} has {max(lengths)} valid frames"
-        )
-    if max_frames is not None and ends.size > max_frames:
-        ends = ends[subsample(ends.size, max_frames)]
-    return ends
 
 
 # --- baselines and examples ---------------------------------------------------------
@@ -387,18 +281,23 @@ def evaluate(
         run = _Run(model, ds, evaluation_geometry(model, ds, resize), batch_size)
         selection = select_split(model, ds, split)
         ends = evaluation_frames(model, ds, selection, max_frames)
+        covered = coverage(ds, selection, ends.size)
         log.info(
-            "evaluating %s on %d frames of %d presses (%s split, %s) of %s",
+            "evaluating %s on %d frames of %d presses (%s split, %s) of %s: coverage %.1f%% "
+            "of the split's %d valid frames",
             model.source,
             ends.size,
             np.unique(ds.press_id[ends]).size,
             selection.name,
             selection.source,
             ds.path,
+            100 * covered["coverage"],
+            covered["valid_frames"],
         )
         base_maps = run.baseline_maps(selection, ends) if baselines else {}
         accs, col = run.loop(ends, base_maps, out, selection, progress)
         metrics = _assemble(accs, model, ds, selection, ends, max_frames)
+        metrics.update(covered)
         if out is not None:
             metrics["files"] = {"metrics": METRICS_FILE, "predictions": PREDICTIONS_FILE}
             if plots:
@@ -421,7 +320,7 @@ class _Run:
     def baseline_maps(self, selection: SplitSelection, ends: np.ndarray) -> dict[str, np.ndarray]:
         """The constant maps scored as baselines: all-zero and the mean training label."""
         ds, s = self.ds, self.geometry.image_size_px
-        train_ends = window_ends(ds.press_id, ds.valid, self.model.window, selection.train_ids)
+        train_ends = selection_ends(ds, selection, self.model.window, train=True)
         source = train_ends if train_ends.size else ends
         return {
             "zero": np.zeros((s, s), np.float32),

@@ -34,7 +34,7 @@ from beadsight.checkpoint import (
 )
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import Dataset, DatasetError
-from beadsight.data.splits import SPLITS, window_ends
+from beadsight.data.splits import SPLITS, dataset_window_ends
 from beadsight.geometry import disk_maps
 from beadsight.train.config import (
     INIT_SHAPE_FIELDS,
@@ -87,13 +87,13 @@ def prepare_data(
         )
     labels, span = {}, config.span
     for name in ("train", "val"):
-        ends = window_ends(ds.press_id, ds.valid, span, presses=split[name])
+        ends = dataset_window_ends(ds, span, presses=split[name])
         labels[name] = WindowLabels.from_dataset(ds, ends, image_size)
     if len(labels["train"]) == 0:
         raise ConfigError(
-            f"window {config.window} (frame stride {config.frame_stride}): no training window "
-            f"fits in the {len(split['train'])} train presses of {ds.path} (each needs {span} "
-            "consecutive valid frames)"
+            f"window {config.window} (frame stride {config.frame_stride}): no frame of the "
+            f"{len(split['train'])} train presses of {ds.path} has the {span} consecutive valid "
+            "frames of history a training window needs"
         )
     if len(labels["val"]) == 0:
         logger.warning("no validation windows: best.pt will follow the training loss")

@@ -3,7 +3,7 @@
 A window ending at frame ``e`` holds frames ``e-T+1 .. e`` (oldest first); its
 target is the ground-truth pressure map of frame ``e``
 (:func:`beadsight.data.labels.label_maps`), so the model never sees the future.
-Which frames may end a window comes from :func:`beadsight.data.splits.window_ends`,
+Which frames may end a window comes from :func:`beadsight.data.splits.dataset_window_ends`,
 the same selection evaluation uses.
 
 Two ways to feed a training loop, with the same batches:
