@@ -9,9 +9,9 @@ import pytest
 from live_helpers import BACKEND, WINDOW, ScriptedSource, press_frames, tiny_model
 
 from beadsight.cli import main
-from beadsight.live.sensor import LiveSensor
-from beadsight.live.readings import ReadingsFileError, open_readings
 from beadsight.live.mcap import FRAME_ID, TOPIC_COP, TOPIC_FORCE, TOPIC_PRESSURE, export_mcap
+from beadsight.live.readings import ReadingsFileError, open_readings
+from beadsight.live.sensor import LiveSensor
 
 pytest.importorskip("mcap_ros2")
 
@@ -110,6 +110,18 @@ def test_cli_to_mcap(recording, tmp_path, capsys):
     out = tmp_path / "cli.mcap"
     assert main(["to-mcap", str(path), "--out", str(out)]) == 0
     assert f"wrote {out}" in capsys.readouterr().out
+    check_messages(read_mcap(out), readings)
+
+
+def test_cli_to_mcap_does_not_replace_a_file_unasked(recording, tmp_path, capsys):
+    path, readings = recording
+    out = tmp_path / "notes.mcap"
+    out.write_bytes(b"someone's notes")
+    assert main(["to-mcap", str(path), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "notes.mcap" in err[0] and "--overwrite" in err[0]
+    assert out.read_bytes() == b"someone's notes"
+    assert main(["to-mcap", str(path), "--out", str(out), "--overwrite"]) == 0
     check_messages(read_mcap(out), readings)
 
 

@@ -90,6 +90,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="record every reading to this file (.h5 readings file or .mcap)",
     )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --output file")
     p.add_argument("--frames", type=int, default=None, help="stop sensing after N readings")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
     p.add_argument(
@@ -109,6 +110,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("readings", type=Path, help="readings file (.h5)")
     p.add_argument("--out", required=True, type=Path, help="output .mcap file")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=run_to_mcap)
 
 
@@ -138,6 +140,7 @@ def run_live_command(args: argparse.Namespace) -> int:
         },
         stream_port=None if args.no_stream else args.stream_port,
         output=args.output,
+        overwrite=args.overwrite,
         duration_s=args.duration,
         report_every_s=args.report_every,
         echo=lambda line: print(line, flush=True),
@@ -148,5 +151,5 @@ def run_live_command(args: argparse.Namespace) -> int:
 def run_to_mcap(args: argparse.Namespace) -> int:
     from beadsight.live.mcap import export_mcap
 
-    print(f"wrote {export_mcap(args.readings, args.out)}")
+    print(f"wrote {export_mcap(args.readings, args.out, overwrite=args.overwrite)}")
     return 0

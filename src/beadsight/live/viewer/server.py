@@ -9,7 +9,7 @@ Routes:
   sent at most ``max_fps`` times a second and at least every :data:`KEEPALIVE_S`.
 * ``GET /api/state`` -- the same JSON once, without images (for scripts).
 * ``POST /api/record`` with JSON ``{"action": "start" | "stop"}`` -- start/stop
-  recording readings to a new HDF5 file in ``record_dir``.
+  recording readings to a new HDF5 file in ``record_dir`` (a new name each time).
 
 A state message: ``status`` (state, message), ``stats`` (rate, latency percentiles),
 ``reading`` (force, centre of pressure, contact area, ...; null before the first),
@@ -17,7 +17,8 @@ A state message: ``status`` (state, message), ``stats`` (rate, latency percentil
 map (PNG); only when a new reading came since the last message to this client),
 ``contours`` (contact outline polygons) and ``cop`` (marker position), both as
 fractions of the image side, ``trace`` (new ``[t_s, force_n, reference_force_n]``
-points since this client's previous message) and ``recording``.
+points since this client's previous message), ``recording`` and ``record_error`` (why
+the last recording stopped by itself, e.g. a full disk; else null).
 
 The viewer is a :class:`beadsight.live.sensor.LiveListener`: the sensing thread only stores a
 reference to the newest update and appends one trace point; images are encoded at
@@ -44,6 +45,7 @@ import numpy as np
 
 from beadsight.errors import BeadSightError
 from beadsight.geometry import mm_to_px
+from beadsight.live.recorder import unique_recording_path
 
 logger = logging.getLogger(__name__)
 
@@ -270,6 +272,7 @@ class ViewerServer:
                 "dropped_frames": stats.dropped_frames,
             },
             "recording": None if rec is None else {"path": str(rec[0]), "readings": rec[1]},
+            "record_error": self.sensor.recording_error,
             "trace": [
                 [round(t, 4), round(f, 4), None if g is None else round(g, 4)] for t, f, g in trace
             ],
@@ -313,8 +316,7 @@ class ViewerServer:
         with self._record_lock:
             if action == "start":
                 if self.sensor.recording is None:
-                    name = time.strftime("beadsight-%Y%m%d-%H%M%S.h5")
-                    self.sensor.start_recording(self.record_dir / name)
+                    self.sensor.start_recording(unique_recording_path(self.record_dir))
             elif action == "stop":
                 self.sensor.stop_recording()
             else:
