@@ -7,6 +7,7 @@ from pathlib import Path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from beadsight.live.stream import DEFAULT_MAX_AGE_S
     from beadsight.live.stream import DEFAULT_PORT as STREAM_PORT
     from beadsight.live.viewer.server import DEFAULT_MAX_FPS, DEFAULT_MAX_KPA
     from beadsight.live.viewer.server import DEFAULT_PORT as VIEWER_PORT
@@ -85,6 +86,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-stream", action="store_true", help="no TCP readings stream")
     p.add_argument(
+        "--stream-max-age",
+        type=float,
+        default=DEFAULT_MAX_AGE_S,
+        help="the stream never sends a reading older than this, s (default "
+        f"{DEFAULT_MAX_AGE_S:g}; slow clients skip readings instead)",
+    )
+    p.add_argument(
         "--output",
         type=Path,
         default=None,
@@ -139,6 +147,7 @@ def run_live_command(args: argparse.Namespace) -> int:
             "record_dir": args.record_dir,
         },
         stream_port=None if args.no_stream else args.stream_port,
+        stream_options={"max_age_s": args.stream_max_age},
         output=args.output,
         overwrite=args.overwrite,
         duration_s=args.duration,

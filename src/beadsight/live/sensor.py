@@ -727,6 +727,7 @@ def run_live(
     port: int = 8000,
     viewer_options: dict[str, Any] | None = None,
     stream_port: int | None = None,
+    stream_options: dict[str, Any] | None = None,
     output: str | Path | None = None,
     overwrite: bool = False,
     duration_s: float | None = None,
@@ -742,7 +743,8 @@ def run_live(
     error that stopped sensing or the recording, if any.
 
     viewer_options: keyword arguments of :class:`~beadsight.live.viewer.server.ViewerServer`
-    (max_fps, max_kpa, history_s, record_dir).
+    (max_fps, max_kpa, history_s, record_dir). stream_options: keyword arguments of
+    :class:`~beadsight.live.stream.StreamServer` (max_age_s).
     """
     wake, servers, failed = threading.Event(), [], threading.Event()
 
@@ -759,7 +761,9 @@ def run_live(
         if stream_port is not None:
             from beadsight.live.stream import StreamServer
 
-            servers.append(StreamServer(sensor.geometry, host, stream_port))
+            servers.append(
+                StreamServer(sensor.geometry, host, stream_port, **(stream_options or {}))
+            )
             sensor.add_listener(servers[-1])
             echo(f"stream: tcp://{servers[-1].host}:{servers[-1].port} (see docs/live.md)")
         if viewer:
