@@ -117,6 +117,36 @@ def test_a_write_that_fails_anyway_keeps_only_whole_readings(presses, full_disk,
             np.testing.assert_array_equal(rf.pressure_kpa[i], written[i].pressure_kpa)
 
 
+def test_an_mcap_write_that_fails_anyway_ends_the_file_after_whole_chunks(full_disk, monkeypatch):
+    pytest.importorskip("mcap_ros2")
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    import beadsight.live.mcap as mcap_module
+
+    monkeypatch.setattr(mcap_module.McapReadingsWriter, "_room", lambda self: 1 << 40)
+    monkeypatch.setattr(mcap_module, "CHUNK_BYTES", 48 * 1024)  # chunks of 3 readings
+    rng = np.random.default_rng(0)
+    path = full_disk / "rec.mcap"
+    written = []
+    writer = mcap_module.McapReadingsWriter(path, TINY)
+    with pytest.raises(WriteError, match=r"rec\.mcap: disk full.*may be damaged"):
+        for i in range(1000):
+            reading = _Reading(rng.uniform(1, 100, (64, 64)).astype(np.float32), i)
+            written.append(reading)
+            writer.append(reading)
+    assert not path.exists()
+    with open(full_disk / "rec.mcap.partial", "rb") as f:  # readers take the file as it is
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        maps = [
+            np.frombuffer(bytes(msg.data), "<f4").reshape(64, 64)
+            for _s, _c, _m, msg in reader.iter_decoded_messages(topics=["/beadsight/pressure"])
+        ]
+    assert 3 <= len(maps) < len(written)
+    for got, reading in zip(maps, written, strict=False):
+        np.testing.assert_array_equal(got, reading.pressure_kpa)
+
+
 class _Reading:
     def __init__(self, kpa: np.ndarray, i: int):
         self.pressure_kpa, self.frame_index = kpa, i
