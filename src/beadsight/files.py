@@ -21,6 +21,8 @@ import errno
 import json
 import os
 import re
+import shutil
+import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -195,3 +197,15 @@ def remove_stale_temps(folder: str | Path, name: str) -> list[Path]:
         except OSError:
             pass
     return removed
+
+
+def free_bytes(folder: str | Path) -> int:
+    """Bytes an unprivileged writer may still write in ``folder``'s file system.
+
+    For writers that stop cleanly before a disk fills (HDF5 cannot recover from a write
+    that fails half-way); where the file system cannot tell, a very large number.
+    """
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return sys.maxsize

@@ -113,6 +113,18 @@ def test_cli_to_mcap(recording, tmp_path, capsys):
     check_messages(read_mcap(out), readings)
 
 
+def test_cli_to_mcap_does_not_replace_a_file_unasked(recording, tmp_path, capsys):
+    path, readings = recording
+    out = tmp_path / "notes.mcap"
+    out.write_bytes(b"someone's notes")
+    assert main(["to-mcap", str(path), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "notes.mcap" in err[0] and "--overwrite" in err[0]
+    assert out.read_bytes() == b"someone's notes"
+    assert main(["to-mcap", str(path), "--out", str(out), "--overwrite"]) == 0
+    check_messages(read_mcap(out), readings)
+
+
 def test_to_mcap_bad_inputs_are_one_line_errors(make_dataset, recording, tmp_path, capsys):
     dataset = make_dataset()
     assert main(["to-mcap", str(dataset), "--out", str(tmp_path / "x.mcap")]) == 1

@@ -7,6 +7,8 @@ import math
 import socket
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,7 @@ from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture
     wait_until,
 )
 
+from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.live.sensor import LiveSensor, LiveStatus
 from beadsight.live.stream import StreamServer, encode_reading
@@ -118,6 +121,8 @@ def test_hello_and_status_messages_and_clean_close():
             status, _ = read_message(stream)  # late joiners get the current status
             assert status == {
                 "type": "status",
+                "seq": 0,  # no reading yet
+                "skipped": 0,
                 "state": "no_signal",
                 "message": "camera 0 unplugged",
                 "since_s": 1.0,
@@ -146,3 +151,121 @@ def test_port_in_use_is_a_clear_error():
     with StreamServer(TINY, port=0) as server:
         with pytest.raises(BeadSightError, match=f"{server.port}.*--stream-port"):
             StreamServer(TINY, port=server.port)
+
+
+def _reconciles(messages: list[dict]) -> None:
+    """For consecutive reading/status messages a, b of one client:
+    b.seq - a.seq - (1 if b is a reading else 0) == b.skipped."""
+    numbered = [m for m in messages if m["type"] in ("reading", "status")]
+    for a, b in zip(numbered, numbered[1:], strict=False):
+        step = 1 if b["type"] == "reading" else 0
+        assert b["seq"] - a["seq"] - step == b["skipped"], (a, b)
+
+
+def test_slow_client_gets_fresh_readings_and_counts_the_skipped(model):
+    """A separate client process reading 10 readings/s while the sensor runs at 30 Hz."""
+    max_age_s, margin_s, interval_s = 0.5, 0.25, 0.1
+    with (
+        StreamServer(TINY, port=0, max_age_s=max_age_s) as server,
+        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+    ):
+        sensor.add_listener(server)
+        command = [sys.executable, str(CLIENT), "--port", str(server.port), "--count", "40",
+                   "--interval", str(interval_s)]  # fmt: skip
+        done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+        rate = sensor.stats().rate_hz
+    assert done.returncode == 0, done.stderr
+    readings = [json.loads(line) for line in done.stdout.splitlines()]
+    assert len(readings) == 40
+    ages = [r["age_s"] for r in readings]
+    # today's server queued ~8 s of readings in socket buffers: ages grew without bound
+    assert max(ages) <= max_age_s + margin_s, ages
+    assert rate > 25, rate  # the sensor kept its 30 Hz
+    skipped = [r["skipped"] for r in readings]
+    assert sum(skipped[1:]) > len(readings)  # about 2 of every 3 readings were skipped
+    _reconciles([{"type": "reading", **r} for r in readings])
+
+
+class _Update:
+    """A stand-in LiveUpdate with a size x size map (what StreamServer.push reads)."""
+
+    def __init__(self, k: int, size: int):
+        self.latency_s, self.reference_force_n = 0.01, math.nan
+        r = self.reading = type("R", (), {})()
+        r.pressure_kpa = np.full((size, size), float(k), np.float32)
+        r.force_n, r.cop_mm, r.has_contact = float(k), np.array([0.0, 0.0]), True
+        r.contact_area_mm2, r.timestamp_s, r.latency_s = 1.0, time.time(), 0.005
+        r.frame_index, r.dropped_frames = k, 0
+
+
+def test_readings_older_than_the_limit_are_never_sent():
+    big = SensorGeometry(image_size_px=256)  # one message (256 KiB) outgrows the buffers
+    with StreamServer(big, port=0, max_age_s=0.3) as server:
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.connect((server.host, server.port))
+        with sock, sock.makefile("rb") as stream:
+            wait_until(lambda: server.client_count == 1, 10, "the client")
+            server.push(_Update(1, 256))
+            time.sleep(0.2)  # reading 1 is being sent: the sender waits for the client
+            for k in range(2, 7):  # 2-4 are dropped at once (queue of 2), 5 and 6 wait
+                server.push(_Update(k, 256))
+            time.sleep(0.6)  # now 5 and 6 are older than 0.3 s
+            got = [read_message(stream)[0] for _ in range(2)]  # hello, reading 1
+            server.push(_Update(7, 256))  # fresh
+            got.append(read_message(stream)[0])
+    assert [m["type"] for m in got] == ["hello", "reading", "reading"]
+    assert [m["seq"] for m in got[1:]] == [1, 7]  # 5 and 6 were never sent
+    assert got[2]["skipped"] == 5
+    _reconciles(got)
+
+
+def test_every_client_gets_ended_and_closed():
+    """Fast, slow and paused clients all receive the final statuses, and their counts add
+    up, with reference-size maps (256x256: 256 KiB per reading) at 30 readings/s."""
+    big = SensorGeometry(image_size_px=256)
+    server = StreamServer(big, port=0)
+    results: dict[str, list[dict]] = {}
+    closing = threading.Event()
+
+    def client(name: str, interval_s: float, paused: bool) -> None:
+        sock = socket.create_connection((server.host, server.port))  # the system's buffers
+        got = results.setdefault(name, [])
+        with sock, sock.makefile("rb") as stream:
+            if paused:  # reads nothing until 1.2 s after the server began to close
+                closing.wait(60)
+                time.sleep(1.2)
+            while line := stream.readline():
+                header = json.loads(line)
+                stream.read(header["payload_bytes"])
+                got.append(header)
+                if header["type"] == "reading":
+                    time.sleep(interval_s)
+
+    threads = [
+        threading.Thread(target=client, args=args)
+        for args in (("fast", 0.0, False), ("slow", 0.1, False), ("paused", 0.0, True))
+    ]
+    for t in threads:
+        t.start()
+    produced = 45
+    try:
+        wait_until(lambda: server.client_count == 3, 10, "3 clients")
+        server.status(LiveStatus("ok", "sim", time.time()))
+        for k in range(1, produced + 1):
+            server.push(_Update(k, 256))
+            time.sleep(1 / 30)
+        server.status(LiveStatus("ended", "sim ended", time.time()))
+    finally:
+        closing.set()
+        server.close()
+        for t in threads:
+            t.join(30)
+    for name, got in results.items():
+        states = [m["state"] for m in got if m["type"] == "status"]
+        assert states[-2:] == ["ended", "closed"], (name, states)
+        _reconciles(got)
+        readings = [m for m in got if m["type"] == "reading"]
+        assert got[-1]["seq"] == produced  # every reading is either received or counted
+        assert len(readings) + sum(m["skipped"] for m in got if "skipped" in m) == produced, name
+    assert sum(m["skipped"] for m in results["slow"] if "skipped" in m) > 0

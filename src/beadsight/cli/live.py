@@ -31,6 +31,7 @@ def register(commands) -> None:
 def _to_mcap_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("readings", type=Path, help="readings file (.h5)")
     p.add_argument("--out", required=True, type=Path, help="output .mcap file")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
 
 
 def _live_arguments(p: argparse.ArgumentParser) -> None:
@@ -72,6 +73,7 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="record every reading to this file (.h5 readings file or .mcap)",
     )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --output file")
     p.add_argument("--frames", type=int, default=None, help="stop sensing after N readings")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
     p.add_argument(
@@ -82,6 +84,7 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
 def _output_arguments(p: argparse.ArgumentParser) -> None:
     """Where the readings go: the web viewer and the TCP stream."""
     from beadsight.cli.options import add_option
+    from beadsight.live.stream import DEFAULT_MAX_AGE_S
     from beadsight.live.stream import DEFAULT_PORT as STREAM_PORT
     from beadsight.live.viewer.server import DEFAULT_HOST, DEFAULT_MAX_FPS, DEFAULT_MAX_KPA
     from beadsight.live.viewer.server import DEFAULT_PORT as VIEWER_PORT
@@ -99,6 +102,12 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_option(p, "--stream-port", STREAM_PORT, "TCP port of the readings stream (0 = any)")
     p.add_argument("--no-stream", action="store_true", help="no TCP readings stream")
+    add_option(
+        p,
+        "--stream-max-age",
+        DEFAULT_MAX_AGE_S,
+        "the stream never sends a reading older than this, s (slow clients skip readings)",
+    )
 
 
 def run_live_command(args: argparse.Namespace) -> int:
@@ -124,7 +133,9 @@ def run_live_command(args: argparse.Namespace) -> int:
             "record_dir": args.record_dir,
         },
         stream_port=None if args.no_stream else args.stream_port,
+        stream_options={"max_age_s": args.stream_max_age},
         output=args.output,
+        overwrite=args.overwrite,
         duration_s=args.duration,
         **given(report_every_s=args.report_every),
         echo=lambda line: print(line, flush=True),
@@ -135,5 +146,5 @@ def run_live_command(args: argparse.Namespace) -> int:
 def run_to_mcap(args: argparse.Namespace) -> int:
     from beadsight.live.mcap import export_mcap
 
-    print(f"wrote {export_mcap(args.readings, args.out)}")
+    print(f"wrote {export_mcap(args.readings, args.out, overwrite=args.overwrite)}")
     return 0

@@ -28,7 +28,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +38,7 @@ from beadsight import __version__
 from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.live.readings import ReadingLike, open_readings
+from beadsight.live.recorder import DISK_RESERVE_BYTES, PartialWriter
 
 logger = logging.getLogger(__name__)
 
@@ -48,6 +48,11 @@ TOPIC_FORCE = "/beadsight/force"
 TOPIC_COP = "/beadsight/cop"
 TOPIC_REFERENCE_FORCE = "/beadsight/reference_force"
 M_PER_MM = 1e-3
+CHUNK_BYTES = 1024 * 1024  # messages are compressed and written in chunks of about this size
+MESSAGE_OVERHEAD_BYTES = 512  # most bytes a message adds to an MCAP file beyond its payload
+SUMMARY_BYTES = 16 * 1024  # MCAP summary without chunk indexes (schemas, channels, ...)
+SUMMARY_BYTES_PER_CHUNK = 512  # its chunk index entry per chunk
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 NS_PER_S = 1_000_000_000
 FLOAT32_BYTES = 4
 
@@ -134,10 +139,61 @@ def point_message(cop_mm: np.ndarray, timestamp_s: float) -> dict[str, Any]:
     }
 
 
-class McapReadingsWriter:
+class _CountedFile:
+    """The MCAP writer's output: an unbuffered file that counts the bytes that reached it.
+
+    A write that fails (disk full) is cut back off the file, so the file always ends with
+    whole records; ``failed`` is then set.
+    """
+
+    def __init__(self, path: Path, exclusive: bool):
+        self._f = open(path, "xb" if exclusive else "wb", buffering=0)  # noqa: SIM115
+        self.written = 0
+        self.failed = False
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data)
+        try:
+            while view:
+                view = view[self._f.write(view) :]
+        except OSError:
+            self.failed = True
+            self._f.truncate(self.written)
+            self._f.seek(self.written)
+            raise
+        self.written += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self.written
+
+    def flush(self) -> None:
+        pass
+
+    def end_without_summary(self) -> None:
+        """End a file cut short by a failed write so that MCAP readers take it: DataEnd and
+        a footer that announces no summary (readers then scan the records)."""
+        from mcap.data_stream import RecordBuilder
+        from mcap.records import DataEnd, Footer
+
+        builder = RecordBuilder()
+        DataEnd(0).write(builder)
+        Footer(0, 0, 0).write(builder)
+        builder.write(MCAP_MAGIC)
+        self.failed = False
+        self.write(builder.end())
+
+    def close(self) -> None:
+        self._f.close()
+
+
+class McapReadingsWriter(PartialWriter):
     """Write readings as ROS 2 messages to an MCAP file (same interface as ReadingsWriter).
 
-    Writes ``<path>.partial`` and renames it on :meth:`close`. Not thread-safe.
+    Writes ``<path>.partial`` and renames it on :meth:`close`; an existing ``path`` is
+    refused unless ``overwrite``. A full disk stops the recording with a
+    :class:`~beadsight.files.WriteError` (see :mod:`beadsight.live.recorder`); the file
+    then ends properly after the last reading. Not thread-safe.
     """
 
     def __init__(
@@ -145,14 +201,21 @@ class McapReadingsWriter:
         path: str | Path,
         geometry: SensorGeometry,
         provenance: dict[str, Any] | None = None,
+        *,
+        overwrite: bool = False,
     ):
         writer_cls, compression = _require_mcap()
-        self.path = Path(path)
-        self.partial = self.path.with_name(self.path.name + ".partial")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._begin(path, overwrite)
         self.geometry = geometry
-        self._stream = open(self.partial, "wb")  # noqa: SIM115 - closed in close()/abort()
-        self._writer = writer_cls(self._stream, compression=compression.ZSTD)
+        self._stream: _CountedFile | None = None
+        self._pending = 0  # most bytes of messages in the writer's open (unwritten) chunk
+        self._chunks = 0  # chunks written (each adds an index entry to the summary)
+        self._guard(lambda: self._create(writer_cls, compression.ZSTD, provenance))
+
+    def _create(self, writer_cls: Any, compression: Any, provenance: dict | None) -> None:
+        self._stream = _CountedFile(self.partial, exclusive=not self.overwrite)
+        self._created = True
+        self._writer = writer_cls(self._stream, chunk_size=CHUNK_BYTES, compression=compression)
         self._schemas = {
             name: self._writer.register_msgdef(name, text)
             for name, text in MESSAGE_DEFINITIONS.items()
@@ -161,26 +224,53 @@ class McapReadingsWriter:
             "beadsight",
             {
                 "beadsight_version": __version__,
-                "geometry": geometry.to_json(),
+                "geometry": self.geometry.to_json(),
                 "provenance": json.dumps(provenance or {}, default=str),
                 "units": "pressure kPa, force N, position m",
             },
         )
-        self._count = 0
-        self._closed = False
 
-    def __len__(self) -> int:
-        return self._count
+    def _messages(self, reading: ReadingLike, reference_force_n: float) -> list[tuple]:
+        """(topic, schema, message) of one reading."""
+        t = float(reading.timestamp_s)
+        out = [
+            (TOPIC_PRESSURE, "sensor_msgs/msg/Image", image_message(reading.pressure_kpa, t)),
+            (TOPIC_FORCE, "geometry_msgs/msg/WrenchStamped", wrench_message(reading.force_n, t)),
+        ]
+        cop = np.asarray(reading.cop_mm, dtype=np.float64).reshape(2)
+        if np.all(np.isfinite(cop)):
+            out.append((TOPIC_COP, "geometry_msgs/msg/PointStamped", point_message(cop, t)))
+        if math.isfinite(reference_force_n):
+            out.append(
+                (
+                    TOPIC_REFERENCE_FORCE,
+                    "geometry_msgs/msg/WrenchStamped",
+                    wrench_message(reference_force_n, t),
+                )
+            )
+        return out
 
-    def _write(self, topic: str, schema: str, message: dict, time_ns: int) -> None:
-        self._writer.write_message(
-            topic,
-            self._schemas[schema],
-            message,
-            log_time=time_ns,
-            publish_time=time_ns,
-            sequence=self._count,
-        )
+    @staticmethod
+    def _size(message: dict) -> int:
+        """Most bytes ``message`` adds to a chunk (payload plus record and index overhead)."""
+        return len(message.get("data", b"")) + MESSAGE_OVERHEAD_BYTES
+
+    def _write_messages(self, messages: list[tuple], t_ns: int) -> None:
+        for topic, schema, message in messages:
+            before = self._stream.written
+            self._writer.write_message(
+                topic,
+                self._schemas[schema],
+                message,
+                log_time=t_ns,
+                publish_time=t_ns,
+                sequence=self._count,
+            )
+            if self._stream.written != before:  # the chunk (with this message) was written
+                self._pending, self._chunks = 0, self._chunks + 1
+                self._written = self._count + (message is messages[-1][2])
+            else:
+                self._pending += self._size(message)
 
     def append(
         self,
@@ -188,51 +278,39 @@ class McapReadingsWriter:
         reference_force_n: float = math.nan,
         latency_s: float | None = None,
     ) -> None:
-        """Write one reading's messages (``latency_s`` is accepted for interface parity)."""
-        t = float(reading.timestamp_s)
-        t_ns = round(t * NS_PER_S)
-        self._write(
-            TOPIC_PRESSURE, "sensor_msgs/msg/Image", image_message(reading.pressure_kpa, t), t_ns
+        """Write one reading's messages (``latency_s`` is accepted for interface parity).
+
+        Raises :class:`~beadsight.files.WriteError` once the disk is full.
+        """
+        self._check_open()
+        messages = self._messages(reading, reference_force_n)
+        need = (
+            self._pending
+            + sum(self._size(m) for _t, _s, m in messages)
+            + SUMMARY_BYTES
+            + SUMMARY_BYTES_PER_CHUNK * (self._chunks + 1)
         )
-        self._write(
-            TOPIC_FORCE, "geometry_msgs/msg/WrenchStamped", wrench_message(reading.force_n, t), t_ns
-        )
-        cop = np.asarray(reading.cop_mm, dtype=np.float64).reshape(2)
-        if np.all(np.isfinite(cop)):
-            self._write(TOPIC_COP, "geometry_msgs/msg/PointStamped", point_message(cop, t), t_ns)
-        if math.isfinite(reference_force_n):
-            self._write(
-                TOPIC_REFERENCE_FORCE,
-                "geometry_msgs/msg/WrenchStamped",
-                wrench_message(reference_force_n, t),
-                t_ns,
-            )
+        room = self._room()
+        if need > room:
+            self._written = self._count  # the clean stop below writes the open chunk
+            free_kib = (max(room, 0) + DISK_RESERVE_BYTES) // 1024
+            self._fail(f"disk full ({free_kib} KiB free, too little for the next reading)")
+        t_ns = round(float(reading.timestamp_s) * NS_PER_S)
+        self._guard(lambda: self._write_messages(messages, t_ns))
         self._count += 1
 
-    def close(self) -> Path:
-        if not self._closed:
-            self._closed = True
-            self._writer.finish()
-            self._stream.close()
-            os.replace(self.partial, self.path)
-            logger.info("wrote %d readings to %s", self._count, self.path)
-        return self.path
-
-    def abort(self) -> None:
-        """Finish the MCAP summary but leave the file as ``<path>.partial``."""
-        if not self._closed:
-            self._closed = True
-            self._writer.finish()
-            self._stream.close()
-
-    def __enter__(self) -> McapReadingsWriter:
-        return self
-
-    def __exit__(self, exc_type, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
+    def _close_file(self, flush: bool) -> None:
+        stream, self._stream = self._stream, None
+        if stream is None:
+            return
+        try:
+            if not stream.failed:
+                self._writer.finish()  # the open chunk and the summary: room was kept for them
+                self._written = self._count
+            else:
+                stream.end_without_summary()
+        finally:
+            stream.close()
 
 
 class _Row:
@@ -249,14 +327,22 @@ class _Row:
         self.frame_index = int(rf.frame_index[i])
 
 
-def export_mcap(readings_path: str | Path, out_path: str | Path, progress: bool = True) -> Path:
-    """Convert a readings HDF5 file (``beadsight live --output x.h5``) to MCAP. Returns out_path."""
+def export_mcap(
+    readings_path: str | Path,
+    out_path: str | Path,
+    progress: bool = True,
+    overwrite: bool = False,
+) -> Path:
+    """Convert a readings HDF5 file (``beadsight live --output x.h5``) to MCAP. Returns out_path.
+
+    An existing ``out_path`` is refused unless ``overwrite``.
+    """
     readings_path, out_path = Path(readings_path), Path(out_path)
     if readings_path.resolve() == out_path.resolve():
         raise ConfigError(f"{out_path}: the MCAP output would overwrite its input")
     with open_readings(readings_path) as rf:
         provenance = {**rf.provenance, "converted_from": str(readings_path)}
-        with McapReadingsWriter(out_path, rf.geometry, provenance) as writer:
+        with McapReadingsWriter(out_path, rf.geometry, provenance, overwrite=overwrite) as writer:
             for i in tqdm(range(len(rf)), desc="to-mcap", unit="reading", disable=not progress):
                 writer.append(_Row(rf, i), float(rf.reference_force_n[i]))
     return out_path

@@ -22,8 +22,8 @@ dataset                shape       dtype     content
 File attributes: ``format``, ``format_version``, ``geometry`` (SensorGeometry JSON) and
 ``provenance`` (JSON: checkpoint, source, backend, beadsight version, creation time).
 The writer fills ``<path>.partial`` and renames it on :meth:`ReadingsWriter.close`, so a
-file at ``path`` is always complete; after a crash the ``.partial`` file holds what was
-flushed.
+file at ``path`` is always complete; after a crash or a full disk the ``.partial`` file
+holds what was flushed (see :mod:`beadsight.live.recorder`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,12 +43,15 @@ from beadsight import __version__
 from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.h5safe import find_dataset, open_h5
+from beadsight.live.recorder import DISK_RESERVE_BYTES, PartialWriter
 
 logger = logging.getLogger(__name__)
 
 FORMAT = "beadsight-readings"
 FORMAT_VERSION = 1
 FLUSH_EVERY = 32  # readings buffered in memory between writes to the file
+SCALAR_CHUNK_ROWS = 1024  # readings per HDF5 chunk of the scalar datasets
+READING_OVERHEAD_BYTES = 512  # most file bytes per reading beyond its raw map (chunk index)
 MAP_COMPRESSION = "lzf"  # fast enough for 30 maps/s on one core; zeros compress well
 
 # name -> (per-reading shape, dtype, unit)
@@ -82,12 +84,14 @@ class ReadingLike(Protocol):
     frame_index: int
 
 
-class ReadingsWriter:
+class ReadingsWriter(PartialWriter):
     """Append readings to an HDF5 file; ``with ReadingsWriter(path, geometry) as w: w.append(r)``.
 
     Readings are buffered and written every :data:`FLUSH_EVERY` readings (then flushed),
     so appending costs microseconds; :meth:`close` writes the rest and moves the file
-    into place. Not thread-safe: call it from one thread.
+    into place. An existing ``path`` is refused unless ``overwrite``. A full disk stops
+    the recording with a :class:`~beadsight.files.WriteError` (see
+    :mod:`beadsight.live.recorder`). Not thread-safe: call it from one thread.
     """
 
     def __init__(
@@ -95,18 +99,32 @@ class ReadingsWriter:
         path: str | Path,
         geometry: SensorGeometry,
         provenance: dict[str, Any] | None = None,
+        *,
+        overwrite: bool = False,
     ):
-        self.path = Path(path)
-        self.partial = self.path.with_name(self.path.name + ".partial")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._begin(path, overwrite)
         self.geometry = geometry
         s = geometry.image_size_px
-        self._f = h5py.File(self.partial, "w")
+        self._map_bytes = s * s * np.dtype(np.float32).itemsize + READING_OVERHEAD_BYTES
+        self._scalar_chunk_bytes = sum(
+            SCALAR_CHUNK_ROWS * np.dtype(dtype).itemsize * int(np.prod(shape))
+            for shape, dtype, _unit in SCALAR_FIELDS.values()
+        )
+        self._rows: list[dict[str, Any]] = []
+        self._maps: list[np.ndarray] = []
+        self._f: h5py.File | None = None
+        self._guard(lambda: self._create(provenance))
+
+    def _create(self, provenance: dict[str, Any] | None) -> None:
+        # no chunk cache: every write reaches the file at once, so a failure raises here
+        self._f = h5py.File(self.partial, "w" if self.overwrite else "w-", rdcc_nbytes=0)
+        self._created = True
+        s = self.geometry.image_size_px
         self._f.attrs.update(
             {
                 "format": FORMAT,
                 "format_version": FORMAT_VERSION,
-                "geometry": geometry.to_json(),
+                "geometry": self.geometry.to_json(),
                 "provenance": json.dumps(
                     {"created_unix": time.time(), "beadsight_version": __version__}
                     | (provenance or {}),
@@ -114,13 +132,18 @@ class ReadingsWriter:
                 ),
             }
         )
+        self._ds: dict[str, h5py.Dataset] = {}
         for name, (shape, dtype, unit) in SCALAR_FIELDS.items():
-            ds = self._f.create_dataset(
-                name, (0, *shape), dtype, maxshape=(None, *shape), chunks=(1024, *shape)
+            self._ds[name] = self._f.create_dataset(
+                name,
+                (0, *shape),
+                dtype,
+                maxshape=(None, *shape),
+                chunks=(SCALAR_CHUNK_ROWS, *shape),
             )
             if unit:
-                ds.attrs["unit"] = unit
-        maps = self._f.create_dataset(
+                self._ds[name].attrs["unit"] = unit
+        self._ds["pressure_kpa"] = self._f.create_dataset(
             "pressure_kpa",
             (0, s, s),
             np.float32,
@@ -128,13 +151,8 @@ class ReadingsWriter:
             chunks=(1, s, s),
             compression=MAP_COMPRESSION,
         )
-        maps.attrs["unit"] = "kPa"
-        self._rows: list[dict[str, Any]] = []
-        self._maps: list[np.ndarray] = []
-        self._count = 0
-
-    def __len__(self) -> int:
-        return self._count
+        self._ds["pressure_kpa"].attrs["unit"] = "kPa"
+        self._f.flush()
 
     def append(
         self,
@@ -145,7 +163,9 @@ class ReadingsWriter:
         """Buffer one reading; ``reading.pressure_kpa`` must be (S, S) with S = geometry size.
 
         latency_s: capture -> reading available (default: ``reading.latency_s``).
+        Raises :class:`~beadsight.files.WriteError` once the disk is full.
         """
+        self._check_open()
         s = self.geometry.image_size_px
         pressure = np.asarray(reading.pressure_kpa, dtype=np.float32)
         if pressure.shape != (s, s):
@@ -169,44 +189,57 @@ class ReadingsWriter:
         if len(self._rows) >= FLUSH_EVERY:
             self._write_buffer()
 
+    def _bytes_for(self, n: int) -> int:
+        """Most bytes that writing the next ``n`` readings adds to the file."""
+        start, rows = self._written, SCALAR_CHUNK_ROWS
+        new_chunks = -(-(start + n) // rows) - (-(-start // rows))
+        return n * self._map_bytes + new_chunks * self._scalar_chunk_bytes
+
     def _write_buffer(self) -> None:
-        if not self._rows:
+        n = len(self._rows)
+        if n == 0:
             return
-        f = self._f
-        start, n = int(f["force_n"].shape[0]), len(self._rows)
-        for name, (shape, dtype, _unit) in SCALAR_FIELDS.items():
-            values = np.asarray([row[name] for row in self._rows], dtype=dtype).reshape(n, *shape)
-            f[name].resize(start + n, axis=0)
-            f[name][start:] = values
-        f["pressure_kpa"].resize(start + n, axis=0)
-        f["pressure_kpa"][start:] = np.stack(self._maps)
+        room = self._room()
+        fit = next((k for k in range(n, 0, -1) if self._bytes_for(k) <= room), 0)
+        if fit:
+            self._guard(lambda: self._write_rows(fit))
+            self._written += fit
         self._rows.clear()
         self._maps.clear()
-        f.flush()
+        if fit < n:
+            free_kib = (max(room, 0) + DISK_RESERVE_BYTES) // 1024
+            self._fail(f"disk full ({free_kib} KiB free, too little for the next readings)")
 
-    def close(self) -> Path:
-        """Write what is buffered, close, and rename ``<path>.partial`` to ``path``."""
-        if self._f.id.valid:
-            self._write_buffer()
-            self._f.close()
-            os.replace(self.partial, self.path)
-            logger.info("wrote %d readings to %s", self._count, self.path)
-        return self.path
+    def _write_rows(self, n: int) -> None:
+        start = self._written
+        try:
+            for name, (shape, dtype, _unit) in SCALAR_FIELDS.items():
+                rows = self._rows[:n]
+                values = np.asarray([row[name] for row in rows], dtype=dtype).reshape(n, *shape)
+                self._ds[name].resize(start + n, axis=0)
+                self._ds[name][start:] = values
+            self._ds["pressure_kpa"].resize(start + n, axis=0)
+            self._ds["pressure_kpa"][start:] = np.stack(self._maps[:n])
+            self._f.flush()
+        except BaseException:
+            # rows whose data did not reach the file must not read back as (zero) readings
+            for ds in self._ds.values():
+                try:
+                    ds.resize(start, axis=0)
+                except Exception:  # noqa: S110 - best effort after a failed write
+                    pass
+            raise
 
-    def abort(self) -> None:
-        """Close without renaming; the ``.partial`` file keeps what was written."""
-        if self._f.id.valid:
-            self._write_buffer()
-            self._f.close()
-
-    def __enter__(self) -> ReadingsWriter:
-        return self
-
-    def __exit__(self, exc_type, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
+    def _close_file(self, flush: bool) -> None:
+        if self._f is None:
+            return
+        try:
+            if flush:
+                self._write_buffer()
+        finally:
+            if self._f is not None:  # (a failed flush has closed it already)
+                f, self._f, self._ds = self._f, None, {}
+                f.close()
 
 
 @dataclass

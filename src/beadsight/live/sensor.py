@@ -52,6 +52,7 @@ from beadsight.devices.base import (
 )
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.inference.predictor import PressurePredictor, Reading
+from beadsight.live.recorder import Recorder, open_recording_writer
 from beadsight.live.sources import frame_converter, open_camera
 
 logger = logging.getLogger(__name__)
@@ -62,7 +63,6 @@ RECONNECT_INITIAL_S = 0.5  # first wait before reopening a lost camera; doubles 
 RECONNECT_MAX_S = 8.0  # longest wait between reopening attempts
 STATS_WINDOW_S = 5.0  # achieved rate and latency percentiles cover this recent span
 READING_QUEUE_SIZE = 256  # readings() buffers this many before dropping the oldest
-RECORDER_QUEUE_SIZE = 3000  # ~100 s at 30 Hz of readings waiting for the disk
 
 STATES = ("starting", "ok", "warming_up", "no_signal", "ended", "stopped", "error")
 
@@ -268,77 +268,6 @@ class UpdateQueue:
             return None
 
 
-class _Recorder:
-    """Writes updates to a ReadingsWriter / McapReadingsWriter on its own thread."""
-
-    def __init__(self, writer: Any, maxsize: int = RECORDER_QUEUE_SIZE):
-        self.writer = writer
-        self.path = Path(writer.path)
-        self.queue = UpdateQueue(maxsize)
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="beadsight-recorder", daemon=True)
-        self._thread.start()
-
-    # listener interface: only queue
-    def push(self, update: LiveUpdate) -> None:
-        self.queue.push(update)
-
-    def status(self, status: LiveStatus) -> None:
-        pass
-
-    def finish(self) -> None:
-        self.queue.finish()
-
-    def _run(self) -> None:
-        try:
-            while True:
-                try:
-                    update = self.queue.get()
-                except EOFError:
-                    break
-                if update is not None:
-                    self.writer.append(
-                        update.reading,
-                        reference_force_n=update.reference_force_n,
-                        latency_s=update.latency_s,
-                    )
-            self.writer.close()
-        except BaseException as e:  # disk full, bad path: report, keep the partial file
-            self.error = e
-            logger.error("recording to %s failed: %s", self.path, e)
-            self.writer.abort()
-
-    @property
-    def count(self) -> int:
-        return len(self.writer)
-
-    def close(self) -> Path:
-        self.queue.finish()
-        self._thread.join()
-        if self.error is not None:
-            raise BeadSightError(f"{self.path}: recording failed: {self.error}") from self.error
-        if self.queue.dropped:
-            logger.warning(
-                "%s: %d readings were dropped (disk too slow)", self.path, self.queue.dropped
-            )
-        return self.path
-
-
-def open_recording_writer(path: str | Path, geometry, provenance: dict[str, Any]) -> Any:
-    """A writer for ``path`` by suffix: ``.h5``/``.hdf5`` readings file or ``.mcap``."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix in (".h5", ".hdf5"):
-        from beadsight.live.readings import ReadingsWriter
-
-        return ReadingsWriter(path, geometry, provenance)
-    if suffix == ".mcap":
-        from beadsight.live.mcap import McapReadingsWriter
-
-        return McapReadingsWriter(path, geometry, provenance)
-    raise ConfigError(f"{path}: recording format unknown; use a .h5 or .mcap file name")
-
-
 # --- the sensor ------------------------------------------------------------------------
 class LiveSensor:
     """Camera/video/simulator -> pressure readings at the camera rate, on a background thread.
@@ -409,7 +338,8 @@ class LiveSensor:
         self._thread: threading.Thread | None = None
         self._first: Frame | None = None
         self._error: BaseException | None = None
-        self._recorder: _Recorder | None = None
+        self._recorder: Recorder | None = None
+        self._failed_recorder: Recorder | None = None  # stopped by an error not yet raised
         self._meter = _RateMeter(stale_after_s=no_signal_after_s)
         self._status = LiveStatus("starting", "not started", time.time())
         self._last_timestamp = -math.inf
@@ -468,10 +398,12 @@ class LiveSensor:
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join()
-        self.stop_recording()
-        self._close_source_and_predictor()
-        if self._status.state not in ("ended", "error"):
-            self._set_status("stopped", "stopped")
+        try:
+            self.stop_recording()
+        finally:
+            self._close_source_and_predictor()
+            if self._status.state not in ("ended", "error"):
+                self._set_status("stopped", "stopped")
 
     def _close_source_and_predictor(self) -> None:
         if self.source is not None:
@@ -569,23 +501,50 @@ class LiveSensor:
         return (update.reading for update in self.updates(maxsize))
 
     # --- recording -----------------------------------------------------------------
-    def start_recording(self, path: str | Path) -> Path:
+    def start_recording(
+        self,
+        path: str | Path,
+        *,
+        overwrite: bool = False,
+        on_error: Callable[[BaseException], None] | None = None,
+    ) -> Path:
         """Record every reading to ``path`` (.h5 readings file or .mcap) until
-        :meth:`stop_recording`. Returns the path."""
+        :meth:`stop_recording`. Returns the path.
+
+        An existing file is refused unless ``overwrite``. A write failure (disk full) ends
+        the recording, not sensing: ``on_error(error)`` is called on the recorder's thread,
+        :attr:`recording_error` tells, and :meth:`stop_recording` raises the error.
+        """
         model = self._require_started()
         with self._lock:
             if self._recorder is not None:
                 raise BeadSightError(f"already recording to {self._recorder.path}")
-            writer = open_recording_writer(path, model.geometry, self._provenance())
-            self._recorder = _Recorder(writer)
-        self.add_listener(self._recorder)
+            self._failed_recorder = None  # its error was reported (recording_error, on_error)
+            writer = open_recording_writer(path, model.geometry, self._provenance(), overwrite)
+            recorder = Recorder(writer, lambda e: self._recording_failed(recorder, e, on_error))
+            self._recorder = recorder
+        self.add_listener(recorder)
         logger.info("recording to %s", path)
         return Path(path)
 
-    def stop_recording(self) -> Path | None:
-        """Finish the current recording; returns its path (None if not recording)."""
+    def _recording_failed(
+        self, recorder: Recorder, error: BaseException, on_error: Callable | None
+    ) -> None:
+        self.remove_listener(recorder)
         with self._lock:
-            recorder = self._recorder
+            if self._recorder is recorder:
+                self._recorder, self._failed_recorder = None, recorder
+        if on_error is not None:
+            on_error(error)
+
+    def stop_recording(self) -> Path | None:
+        """Finish the current recording; returns its path (None if not recording).
+
+        Raises the error that stopped the recording (disk full, ...), if one did.
+        """
+        with self._lock:
+            recorder = self._recorder or self._failed_recorder
+            self._failed_recorder = None
         if recorder is None:
             return None
         self.remove_listener(recorder)
@@ -601,6 +560,12 @@ class LiveSensor:
         """(path, readings written so far) of the current recording, or None."""
         recorder = self._recorder
         return None if recorder is None else (recorder.path, recorder.count)
+
+    @property
+    def recording_error(self) -> str | None:
+        """Why the last recording stopped by itself (disk full, ...), until the next start."""
+        failed = self._failed_recorder
+        return None if failed is None else str(failed.error)
 
     def _provenance(self) -> dict[str, Any]:
         return {
@@ -758,7 +723,9 @@ def run_live(
     port: int = 8000,
     viewer_options: dict[str, Any] | None = None,
     stream_port: int | None = None,
+    stream_options: dict[str, Any] | None = None,
     output: str | Path | None = None,
+    overwrite: bool = False,
     duration_s: float | None = None,
     report_every_s: float = 5.0,
     echo: Callable[[str], None] = print,
@@ -767,22 +734,32 @@ def run_live(
     ``report_every_s``, until sensing ends (source end, ``max_readings``), ``duration_s``
     or Ctrl-C. With the viewer on, the end of sensing leaves the page up (showing "no
     signal") until Ctrl-C or ``duration_s``. The recording and the stream get every
-    reading from the first. Returns the final stats; re-raises the error that stopped
-    sensing, if any.
+    reading from the first. An existing ``output`` is refused unless ``overwrite``; a
+    recording that fails (disk full) ends the run. Returns the final stats; re-raises the
+    error that stopped sensing or the recording, if any.
 
     viewer_options: keyword arguments of :class:`~beadsight.live.viewer.server.ViewerServer`
-    (max_fps, max_kpa, history_s, record_dir).
+    (max_fps, max_kpa, history_s, record_dir). stream_options: keyword arguments of
+    :class:`~beadsight.live.stream.StreamServer` (max_age_s).
     """
-    wake, servers = threading.Event(), []
+    wake, servers, failed = threading.Event(), [], threading.Event()
+
+    def recording_failed(error: BaseException) -> None:
+        failed.set()
+        wake.set()
+
     sensor.open()
     try:
         sensor.add_listener(_Wake(wake))
         if output is not None:
-            echo(f"recording to {sensor.start_recording(output)}")
+            path = sensor.start_recording(output, overwrite=overwrite, on_error=recording_failed)
+            echo(f"recording to {path}")
         if stream_port is not None:
             from beadsight.live.stream import StreamServer
 
-            servers.append(StreamServer(sensor.geometry, host, stream_port))
+            servers.append(
+                StreamServer(sensor.geometry, host, stream_port, **(stream_options or {}))
+            )
             sensor.add_listener(servers[-1])
             echo(f"stream: tcp://{servers[-1].host}:{servers[-1].port} (see docs/live.md)")
         if viewer:
@@ -791,7 +768,7 @@ def run_live(
             servers.append(ViewerServer(sensor, host, port, **(viewer_options or {})))
             echo(f"viewer: {servers[-1].url}")
         sensor.start()
-        _wait(sensor, wake, viewer, duration_s, report_every_s, echo)
+        _wait(sensor, wake, viewer, duration_s, report_every_s, echo, failed)
     except KeyboardInterrupt:
         echo("interrupted: stopping")
     finally:
@@ -804,16 +781,19 @@ def run_live(
 
 
 def _finish(sensor: LiveSensor, servers: list[Any], echo: Callable[[str], None]) -> None:
-    """Close the servers, finish the recording, stop the sensor; safe to call twice."""
-    while servers:
-        servers.pop().close()
-    recorded = sensor.stop_recording()
-    if recorded is not None:
-        echo(f"wrote {recorded}")
-    sensor.stop()
+    """Close the servers, finish the recording (raising its error), stop the sensor; safe to
+    call twice."""
+    try:
+        while servers:
+            servers.pop().close()
+        recorded = sensor.stop_recording()
+        if recorded is not None:
+            echo(f"wrote {recorded}")
+    finally:
+        sensor.stop()
 
 
-def _wait(sensor, wake, viewer, duration_s, report_every_s, echo) -> None:
+def _wait(sensor, wake, viewer, duration_s, report_every_s, echo, failed) -> None:
     now = time.monotonic()
     deadline = math.inf if duration_s is None else now + duration_s
     next_report = now + report_every_s
@@ -821,6 +801,8 @@ def _wait(sensor, wake, viewer, duration_s, report_every_s, echo) -> None:
     while now < deadline:
         wake.wait(min(next_report, deadline) - now)
         now = time.monotonic()
+        if failed.is_set():  # the recording failed: its error ends the run
+            return
         if wake.is_set() and not ended:  # sensing ended
             if not viewer or sensor.error is not None:
                 return

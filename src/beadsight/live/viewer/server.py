@@ -6,10 +6,14 @@ Routes:
 * ``GET /api/config`` -- fixed settings: colour scale (``max_kpa`` and the 256-entry
   colour map), trace length, image size, checkpoint/source/backend names.
 * ``GET /events`` -- Server-Sent Events; each ``data:`` line is one JSON state (below),
-  sent at most ``max_fps`` times a second and at least every :data:`KEEPALIVE_S`.
+  sent at most ``max_fps`` times a second and at least every :data:`KEEPALIVE_S`; at most
+  ``max_clients`` at once (more are answered 503).
 * ``GET /api/state`` -- the same JSON once, without images (for scripts).
 * ``POST /api/record`` with JSON ``{"action": "start" | "stop"}`` -- start/stop
-  recording readings to a new HDF5 file in ``record_dir``.
+  recording readings to a new HDF5 file in ``record_dir`` (a new name each time).
+
+Requests for another ``Host`` than this machine's are refused (DNS rebinding), slow
+requests time out (see :mod:`beadsight.live.viewer.http`).
 
 A state message: ``status`` (state, message), ``stats`` (rate, latency percentiles),
 ``reading`` (force, centre of pressure, contact area, ...; null before the first),
@@ -17,12 +21,14 @@ A state message: ``status`` (state, message), ``stats`` (rate, latency percentil
 map (PNG); only when a new reading came since the last message to this client),
 ``contours`` (contact outline polygons) and ``cop`` (marker position), both as
 fractions of the image side, ``trace`` (new ``[t_s, force_n, reference_force_n]``
-points since this client's previous message) and ``recording``.
+points since this client's previous message), ``recording`` and ``record_error`` (why
+the last recording stopped by itself, e.g. a full disk; else null).
 
 The viewer is a :class:`beadsight.live.sensor.LiveListener`: the sensing thread only stores a
-reference to the newest update and appends one trace point; images are encoded at
-most ``max_fps`` times a second, once for all clients, on the clients' threads. A slow
-browser slows only its own stream.
+reference to the newest update and appends one trace point. One thread serves every
+browser (:mod:`beadsight.live.viewer.events`): it builds the state and encodes the
+images at most ``max_fps`` times a second, once for all; a slow browser only misses
+messages.
 """
 
 from __future__ import annotations
@@ -34,8 +40,6 @@ import math
 import threading
 import time
 from collections import deque
-from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +48,14 @@ import numpy as np
 
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.geometry import mm_to_px
+from beadsight.live.recorder import unique_recording_path
+from beadsight.live.viewer.events import (
+    KEEPALIVE_S,
+    MAX_EVENT_CLIENTS,
+    EventBroadcaster,
+    Snapshot,
+)
+from beadsight.live.viewer.http import LOCAL_HOSTS, REQUEST_TIMEOUT_S, ViewerHTTPServer
 
 logger = logging.getLogger(__name__)
 
@@ -53,13 +65,11 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_MAX_FPS = 20.0  # viewer updates per second, independent of the sensing rate
 DEFAULT_MAX_KPA = 150.0  # top of the fixed colour scale (about an 18 N finger press)
 DEFAULT_HISTORY_S = 10.0  # length of the force trace
-KEEPALIVE_S = 0.5  # a state message goes out at least this often (the page's watchdog)
 COLORMAP = cv2.COLORMAP_INFERNO
 JPEG_QUALITY = 85
 PNG_COMPRESSION = 1  # fast; maps compress well anyway
 MAX_CONTOURS = 8  # largest contact outlines sent to the page
 CONTOUR_EPSILON_PX = 0.75  # polygon simplification tolerance
-MAX_REQUEST_BYTES = 4096
 
 
 def colormap_bgr(levels: int = 256) -> np.ndarray:
@@ -118,8 +128,11 @@ def _ms(seconds: float) -> float | None:
 class ViewerServer:
     """Serve the live viewer for ``sensor`` (a started :class:`beadsight.live.sensor.LiveSensor`).
 
-    Binds ``host:port`` (port 0 = a free port) in the constructor and serves on a
-    background thread until :meth:`close`. Registers itself as the sensor's listener.
+    Binds ``host:port`` (port 0 = a free port) in the constructor and serves on background
+    threads until :meth:`close`. Registers itself as the sensor's listener.
+    max_clients: browsers (``/events`` connections) served at once. allowed_hosts: names
+    besides localhost, IP addresses and ``host`` under which the page may be opened.
+    request_timeout_s: time a client has to send a whole request.
     """
 
     def __init__(
@@ -132,43 +145,50 @@ class ViewerServer:
         max_kpa: float = DEFAULT_MAX_KPA,
         history_s: float = DEFAULT_HISTORY_S,
         record_dir: str | Path = ".",
+        max_clients: int = MAX_EVENT_CLIENTS,
+        allowed_hosts: tuple[str, ...] = (),
+        request_timeout_s: float = REQUEST_TIMEOUT_S,
     ):
         if not max_fps > 0:
             raise ConfigError(f"max_fps must be > 0, got {max_fps}")
         if not max_kpa > 0:
             raise ConfigError(f"max_kpa must be > 0, got {max_kpa}")
+        if not request_timeout_s > 0:
+            raise ConfigError(f"request_timeout_s must be > 0, got {request_timeout_s}")
         self.sensor = sensor
         self.geometry = sensor.geometry
         self.max_fps = float(max_fps)
         self.max_kpa = float(max_kpa)
         self.history_s = float(history_s)
         self.record_dir = Path(record_dir)
+        self.request_timeout_s = float(request_timeout_s)
         self._lut = colormap_bgr()
         self._cond = threading.Condition()
-        self._closing = threading.Event()
         self._update: Any = None
         self._version = 0  # bumped per reading and per status change
         self._status = sensor.status
         self._trace: deque[tuple[float, float, float | None]] = deque()
-        self._images: tuple[int, dict[str, Any]] = (-1, {})
+        self._images: tuple[int, dict[str, Any], bytes] = (-1, {}, b"")
         self._image_lock = threading.Lock()
-        self._handlers: set[threading.Thread] = set()
         self._record_lock = threading.Lock()
         self._record_epoch = 0  # bumped by every start/stop from the page
-        self._page = (STATIC_DIR / "index.html").read_bytes()
+        self.page = (STATIC_DIR / "index.html").read_bytes()
+        allowed = {h.lower() for h in (*LOCAL_HOSTS, host, *allowed_hosts)}
         try:
-            self._httpd = _HTTPServer((host, port), _Handler, self)
+            self._httpd = ViewerHTTPServer((host, port), self, frozenset(allowed))
         except OSError as e:
             raise BeadSightError(
                 f"viewer: cannot listen on {host}:{port} ({e.strerror or e}); choose another "
                 "port with --port"
             ) from None
         self.host, self.port = self._httpd.server_address[:2]
+        self.events = EventBroadcaster(self._snapshot, self.max_fps, max_clients)
         self._thread = threading.Thread(
             target=self._httpd.serve_forever, name="viewer-http", daemon=True
         )
         self._thread.start()
         self._remove_listener = sensor.add_listener(self)
+        self._closed = False
         logger.debug("viewer: %s", self.url)
 
     @property
@@ -177,18 +197,15 @@ class ViewerServer:
         return f"http://{host}:{self.port}/"
 
     def close(self) -> None:
-        """Stop serving; waits for every request thread to finish."""
-        if self._closing.is_set():
+        """Stop serving; closes every connection and waits for the server's threads."""
+        if self._closed:
             return
-        self._closing.set()
+        self._closed = True
         self._remove_listener()
-        with self._cond:
-            self._cond.notify_all()
         self._httpd.shutdown()
-        self._httpd.server_close()
         self._thread.join()
-        for thread in list(self._handlers):
-            thread.join()
+        self.events.close()
+        self._httpd.server_close()
 
     def __enter__(self) -> ViewerServer:
         return self
@@ -208,23 +225,21 @@ class ViewerServer:
             while self._trace and self._trace[0][0] < t - self.history_s:
                 self._trace.popleft()
             self._version += 1
-            self._cond.notify_all()
 
     def status(self, status: Any) -> None:
         with self._cond:
             self._status = status
             self._version += 1
-            self._cond.notify_all()
 
     def finish(self) -> None:
         self.status(self.sensor.status)
 
     # --- state messages --------------------------------------------------------------
-    def _images_for(self, update: Any, version: int) -> dict[str, Any]:
-        """Encoded images and overlays of ``update``, cached for all clients."""
+    def _images_for(self, update: Any, version: int) -> tuple[dict[str, Any], bytes]:
+        """Encoded images and overlays of ``update`` (and as JSON members), cached."""
         with self._image_lock:
             if self._images[0] == version:
-                return self._images[1]
+                return self._images[1], self._images[2]
             r = update.reading
             cop = np.asarray(r.cop_mm, dtype=np.float64)
             marker = None
@@ -238,14 +253,15 @@ class ViewerServer:
                 "contours": contact_outlines(np.asarray(r.contact_mask)),
                 "cop": marker,
             }
-            self._images = (version, images)
-            return images
+            members = json.dumps(images, allow_nan=False).encode()[1:-1]
+            self._images = (version, images, members)
+            return images, members
 
-    def state(self, since_t: float = -math.inf, images: bool = False) -> dict[str, Any]:
-        """The current state as a JSON-able dict (see the module docstring)."""
+    def _common(self) -> tuple[dict[str, Any], Any, int, list]:
+        """(state without trace and images, newest update, version, trace points)."""
         with self._cond:
             update, version, status = self._update, self._version, self._status
-            trace = [p for p in self._trace if p[0] > since_t]
+            trace = list(self._trace)
         stats = self.sensor.stats()
         record_epoch = self._record_epoch  # before reading the recording: see record()
         rec = self.sensor.recording
@@ -270,9 +286,7 @@ class ViewerServer:
                 "dropped_frames": stats.dropped_frames,
             },
             "recording": None if rec is None else {"path": str(rec[0]), "readings": rec[1]},
-            "trace": [
-                [round(t, 4), round(f, 4), None if g is None else round(g, 4)] for t, f, g in trace
-            ],
+            "record_error": self.sensor.recording_error,
             "reading": None,
         }
         if update is not None:
@@ -288,9 +302,31 @@ class ViewerServer:
                 "contact_area_mm2": _finite(r.contact_area_mm2, 2),
                 "peak_kpa": _finite(float(np.max(r.pressure_kpa)), 2),
             }
-            if images:
-                state.update(self._images_for(update, version))
+        return state, update, version, trace
+
+    @staticmethod
+    def _point(t: float, f: float, g: float | None) -> list:
+        return [round(t, 4), round(f, 4), None if g is None else round(g, 4)]
+
+    def state(self, since_t: float = -math.inf, images: bool = False) -> dict[str, Any]:
+        """The current state as a JSON-able dict (see the module docstring)."""
+        state, update, version, trace = self._common()
+        state["trace"] = [self._point(*p) for p in trace if p[0] > since_t]
+        if images and update is not None:
+            state.update(self._images_for(update, version)[0])
         return state
+
+    def _snapshot(self) -> Snapshot:
+        """The state as shared JSON text for the event stream (its own thread)."""
+        state, update, version, trace = self._common()
+        images = None if update is None else self._images_for(update, version)[1]
+        return Snapshot(
+            version=version,
+            common=json.dumps(state, allow_nan=False).encode()[1:-1],
+            images=images,
+            trace_t=[p[0] for p in trace],
+            trace=[json.dumps(self._point(*p)).encode() for p in trace],
+        )
 
     def config(self) -> dict[str, Any]:
         sensor = self.sensor
@@ -308,13 +344,13 @@ class ViewerServer:
         }
 
     def record(self, action: str) -> dict[str, Any]:
-        """Start/stop recording. The answer carries ``record_epoch``, bumped by every
-        change, so the page ignores state messages built before the change."""
+        """Start/stop recording (each start to a new file). The answer carries
+        ``record_epoch``, bumped by every change, so the page ignores state messages built
+        before the change."""
         with self._record_lock:
             if action == "start":
                 if self.sensor.recording is None:
-                    name = time.strftime("beadsight-%Y%m%d-%H%M%S.h5")
-                    self.sensor.start_recording(self.record_dir / name)
+                    self.sensor.start_recording(unique_recording_path(self.record_dir))
             elif action == "stop":
                 self.sensor.stop_recording()
             else:
@@ -325,118 +361,3 @@ class ViewerServer:
                 "recording": None if rec is None else {"path": str(rec[0]), "readings": rec[1]},
                 "record_epoch": self._record_epoch,
             }
-
-    # --- SSE loop (one per client, on the request's thread) ----------------------------
-    def stream_events(self, write) -> None:
-        """Write state messages with ``write(bytes)`` until the server closes or the
-        client goes away (write raises OSError)."""
-        me = threading.current_thread()
-        self._handlers.add(me)
-        try:
-            min_interval = 1.0 / self.max_fps
-            sent_version, since_t = -1, -math.inf
-            while not self._closing.is_set():
-                with self._cond:
-                    self._cond.wait_for(
-                        lambda seen=sent_version: self._version != seen or self._closing.is_set(),
-                        KEEPALIVE_S,
-                    )
-                if self._closing.is_set():
-                    return
-                with self._cond:
-                    version = self._version
-                fresh = version != sent_version
-                state = self.state(since_t, images=fresh)
-                if state["trace"]:
-                    since_t = state["trace"][-1][0]
-                write(b"data: " + json.dumps(state, allow_nan=False).encode() + b"\n\n")
-                sent_version = version
-                # rate limit: at most max_fps messages; the sensor never waits for this
-                if self._closing.wait(min_interval):
-                    return
-        finally:
-            self._handlers.discard(me)
-
-
-class _HTTPServer(ThreadingHTTPServer):
-    daemon_threads = True
-    allow_reuse_address = True
-
-    def __init__(self, address, handler, viewer: ViewerServer):
-        self.viewer = viewer
-        super().__init__(address, handler)
-
-
-class _Handler(BaseHTTPRequestHandler):
-    server: _HTTPServer
-    protocol_version = "HTTP/1.0"  # one request per connection: no idle keep-alive threads
-
-    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - stdlib name
-        logger.debug("viewer %s: " + format, self.address_string(), *args)
-
-    def _send(self, status: int, body: bytes, content_type: str) -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", content_type)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
-        self.wfile.write(body)
-
-    def _json(self, obj: Any, status: int = HTTPStatus.OK) -> None:
-        self._send(status, json.dumps(obj, allow_nan=False).encode(), "application/json")
-
-    def do_GET(self) -> None:  # noqa: N802 - stdlib name
-        viewer = self.server.viewer
-        path = self.path.split("?", 1)[0]
-        if path in ("/", "/index.html"):
-            self._send(HTTPStatus.OK, viewer._page, "text/html; charset=utf-8")
-        elif path == "/api/config":
-            self._json(viewer.config())
-        elif path == "/api/state":
-            self._json(viewer.state())
-        elif path == "/events":
-            self._events(viewer)
-        else:
-            self._json({"error": f"no such page: {path}"}, HTTPStatus.NOT_FOUND)
-
-    def _events(self, viewer: ViewerServer) -> None:
-        self.send_response(HTTPStatus.OK)
-        self.send_header("Content-Type", "text/event-stream")
-        self.send_header("Cache-Control", "no-store")
-        self.send_header("Connection", "close")
-        self.end_headers()
-        self.close_connection = True
-
-        def write(data: bytes) -> None:
-            self.wfile.write(data)
-            self.wfile.flush()
-
-        try:
-            viewer.stream_events(write)
-        except OSError:  # the browser closed the page
-            pass
-
-    def do_POST(self) -> None:  # noqa: N802 - stdlib name
-        viewer = self.server.viewer
-        if self.path != "/api/record":
-            self._json({"error": f"no such endpoint: {self.path}"}, HTTPStatus.NOT_FOUND)
-            return
-        # JSON only: a cross-site form cannot send it without a CORS preflight we refuse
-        if self.headers.get("Content-Type", "").split(";")[0].strip() != "application/json":
-            self._json(
-                {"error": "expected Content-Type: application/json"},
-                HTTPStatus.UNSUPPORTED_MEDIA_TYPE,
-            )
-            return
-        length = int(self.headers.get("Content-Length") or 0)
-        if length > MAX_REQUEST_BYTES:
-            self._json({"error": "request too large"}, HTTPStatus.REQUEST_ENTITY_TOO_LARGE)
-            return
-        try:
-            request = json.loads(self.rfile.read(length) or b"{}")
-            self._json(viewer.record(str(request.get("action"))))
-        except (ValueError, AttributeError) as e:
-            self._json({"error": str(e)}, HTTPStatus.BAD_REQUEST)
-        except (BeadSightError, OSError) as e:
-            logger.error("viewer: record: %s", e)
-            self._json({"error": str(e)}, HTTPStatus.INTERNAL_SERVER_ERROR)

@@ -1,0 +1,170 @@
+"""The viewer's HTTP server under hostile or careless clients: crowds of idle event streams,
+foreign Host headers (DNS rebinding), slow requests, bad Content-Length."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+
+import pytest
+from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+    BACKEND,
+    no_thread_leaks,
+    tiny_model,
+    wait_until,
+)
+
+from beadsight.live.sensor import LiveSensor
+from beadsight.live.viewer.http import host_allowed, host_name
+from beadsight.live.viewer.server import ViewerServer
+
+LOCAL = frozenset({"localhost", "127.0.0.1", "::1"})
+
+
+@pytest.fixture(scope="module")
+def model():
+    return tiny_model()
+
+
+def request(port: int, raw: bytes, timeout_s: float = 10.0) -> tuple[int, bytes]:
+    """Send ``raw`` as one request; (status code, body) of the answer (0: no answer)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout_s) as sock:
+        sock.sendall(raw)
+        sock.shutdown(socket.SHUT_WR)
+        data = b""
+        while chunk := sock.recv(65536):
+            data += chunk
+    if not data:
+        return 0, b""
+    head, _, body = data.partition(b"\r\n\r\n")
+    return int(head.split()[1]), body
+
+
+def post_record(port: int, host: str, body: bytes, headers: str = "") -> tuple[int, bytes]:
+    head = (
+        f"POST /api/record HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\n"
+        f"{headers}\r\n"
+    )
+    return request(port, head.encode() + body)
+
+
+def sensing_rate(sensor: LiveSensor, seconds: float) -> float:
+    n0, t0 = sensor.stats().readings, time.monotonic()
+    time.sleep(seconds)
+    return (sensor.stats().readings - n0) / (time.monotonic() - t0)
+
+
+def test_200_idle_event_streams_do_not_slow_sensing(model):
+    with (
+        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        ViewerServer(sensor, port=0) as viewer,
+    ):
+        wait_until(lambda: sensor.stats().readings >= 10, 30, "readings")
+        alone = sensing_rate(sensor, 3)
+        idle = []
+        try:
+            for _ in range(200):  # each asks for /events, then never reads
+                sock = socket.create_connection(("127.0.0.1", viewer.port))
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+                sock.sendall(
+                    f"GET /events HTTP/1.1\r\nHost: 127.0.0.1:{viewer.port}\r\n\r\n".encode()
+                )
+                idle.append(sock)
+            time.sleep(1)
+            crowded = sensing_rate(sensor, 4)
+            codes = []
+            for sock in idle:
+                sock.settimeout(5)
+                codes.append(sock.recv(16).split(b" ")[1])
+        finally:
+            for sock in idle:
+                sock.close()
+    # today: one thread per connection, each woken per reading: 30 Hz fell to ~10 Hz
+    assert alone > 27 and crowded > 27, (alone, crowded)
+    assert codes.count(b"200") == viewer.events.max_clients  # served; the rest refused
+    assert codes.count(b"503") == 200 - viewer.events.max_clients
+
+
+def test_requests_for_a_foreign_host_are_refused(model, tmp_path):
+    with (
+        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        ViewerServer(sensor, port=0, record_dir=tmp_path) as viewer,
+    ):
+        port, start = viewer.port, b'{"action": "start"}'
+        length = f"Content-Length: {len(start)}\r\n"
+        # a page on evil.example that rebound its name to 127.0.0.1
+        for host in ("evil.example", f"evil.example:{port}", "localhost.evil.example"):
+            assert post_record(port, host, start, length)[0] == 403
+            code, body = request(port, f"GET /api/state HTTP/1.1\r\nHost: {host}\r\n\r\n".encode())
+            assert code == 403 and b"not served here" in body
+        assert sensor.recording is None and list(tmp_path.iterdir()) == []
+        for host in (f"127.0.0.1:{port}", f"localhost:{port}", f"[::1]:{port}", "LocalHost"):
+            code, _ = request(port, f"GET /api/state HTTP/1.1\r\nHost: {host}\r\n\r\n".encode())
+            assert code == 200, host
+        assert post_record(port, f"localhost:{port}", start, length)[0] == 200
+        assert sensor.recording is not None
+        sensor.stop_recording()
+
+
+def test_host_names():
+    assert host_name("LocalHost:8000") == "localhost"
+    assert host_name("[::1]:8000") == "::1"
+    assert host_name("localhost.") == "localhost"
+    assert host_allowed(None, LOCAL)  # HTTP/1.0 scripts may send none; browsers always do
+    assert host_allowed("192.168.1.20:8000", LOCAL)  # an address is no DNS name to rebind
+    assert not host_allowed("evil.example", LOCAL)
+    assert not host_allowed("127.0.0.1.evil.example", LOCAL)
+    assert host_allowed("lab-pc:8000", LOCAL | {"lab-pc"})
+
+
+def test_slow_requests_time_out(model):
+    with (
+        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        ViewerServer(sensor, port=0, request_timeout_s=1.0) as viewer,
+    ):
+        sock = socket.create_connection(("127.0.0.1", viewer.port))
+        with sock:
+            sock.sendall(b"GET / HTTP/1.1\r\n")
+            start = time.monotonic()
+            closed = False
+            while time.monotonic() - start < 10:  # one header byte every 0.2 s
+                try:
+                    sock.sendall(b"X")
+                    sock.settimeout(0.2)
+                    closed = sock.recv(1024) == b""
+                except TimeoutError:
+                    continue
+                except OSError:
+                    closed = True
+                if closed:
+                    break
+            elapsed = time.monotonic() - start
+        assert closed and elapsed < 3, elapsed
+        code, _ = request(viewer.port, b"GET /api/state HTTP/1.0\r\n\r\n")
+        assert code == 200  # still serving
+
+
+@pytest.mark.parametrize(
+    ("headers", "code"),
+    [
+        ("Content-Length: abc\r\n", 400),
+        ("Content-Length: -1\r\n", 400),
+        ("Content-Length: 1e3\r\n", 400),
+        ("Content-Length: +19\r\n", 400),
+        ("Content-Length: 19\r\nContent-Length: 20\r\n", 400),
+        ("Content-Length: 99999999999999999999\r\n", 413),
+        ("Transfer-Encoding: chunked\r\n", 400),
+        ("", 411),
+        ("Content-Length: 40\r\n", 400),  # the body is shorter than announced
+    ],
+)
+def test_bad_content_length_is_refused(model, tmp_path, headers, code):
+    with (
+        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        ViewerServer(sensor, port=0, record_dir=tmp_path) as viewer,
+    ):
+        got, body = post_record(viewer.port, "127.0.0.1", b'{"action": "start"}', headers)
+        assert got == code, body
+        assert "error" in json.loads(body)
+        assert sensor.recording is None
