@@ -5,11 +5,14 @@ Python values (it loads with ``weights_only=True``):
 
 ``{"beadsight": <JSON metadata str>, "state_dict": <UNet state_dict>, ...training state}``
 
-The metadata carries the model config, window, channel order, normalisation,
-output scale, sensor geometry, units and provenance, so the file alone rebuilds a
-working predictor. Reference checkpoints (pickled training dicts with numpy
-arrays) are read with ``weights_only=True`` and an allow-list of numpy types;
-anything else a pickle asks for is refused before it can run.
+The metadata carries the model config (``frames`` T, ``frame_stride``, width, ...),
+channel order, normalisation, output scale, sensor geometry, units and provenance,
+so the file alone rebuilds a working predictor. Format version 2 names the frame
+count ``frames``; version 1 files (``window``) load unchanged.
+
+Reference checkpoints (pickled training dicts with numpy arrays) are read with
+``weights_only=True`` and an allow-list of numpy types; anything else a pickle asks
+for is refused before it can run.
 """
 
 from __future__ import annotations
@@ -23,13 +26,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from beadsight._compat import renamed_attribute
 from beadsight.config import REFERENCE_G_TO_N, ModelConfig, SensorGeometry
 from beadsight.files import atomic_write
 from beadsight.geometry import PA_PER_KPA
 from beadsight.model import FramesToPressure, UNet, infer_model_config
 
 FORMAT = "beadsight-checkpoint"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: model "window" renamed "frames" (version 1 files still load)
 SHIPPED_MODEL = "sim_model.pt"  # the simulated-sensor model, in the package's assets folder
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
 
@@ -85,7 +89,7 @@ class CheckpointMeta:
                     f"this beadsight supports ({FORMAT_VERSION}); upgrade beadsight"
                 )
             return cls(
-                model=ModelConfig.from_dict(d["model"]),
+                model=ModelConfig.from_dict(ModelConfig.upgrade_keys(d["model"])),
                 geometry=SensorGeometry.from_dict(d["geometry"]),
                 pixel_mean=list(d["pixel_mean"]),
                 pixel_std=list(d["pixel_std"]),
@@ -94,7 +98,7 @@ class CheckpointMeta:
                 provenance=d.get("provenance", {}),
                 training=d.get("training", {}),
             )
-        except (KeyError, TypeError, json.JSONDecodeError) as e:
+        except (KeyError, TypeError, AttributeError, json.JSONDecodeError) as e:
             raise CheckpointError(f"{source}: malformed beadsight metadata ({e!r})") from None
 
 
@@ -117,9 +121,16 @@ class PressureModel:
         return cls(_build_module(meta), meta)
 
     @property
-    def window(self) -> int:
-        """Frames in one input window (the model config's span)."""
+    def frames(self) -> int:
+        """T: frames the network sees."""
+        return self.meta.model.frames
+
+    @property
+    def span(self) -> int:
+        """Consecutive frames one input window covers: ``(frames - 1) * frame_stride + 1``."""
         return self.meta.model.span
+
+    window = renamed_attribute("PressureModel", "window", "span")
 
     @property
     def image_size(self) -> int:
@@ -142,15 +153,17 @@ class PressureModel:
         shape = getattr(frames, "shape", None)
         if shape is None or len(shape) not in (4, 5) or shape[-1] != 3:
             raise ValueError(
-                f"{what}: expected (T, H, W, 3) or (B, T, H, W, 3) RGB frames, got shape {shape}"
+                f"{what}: expected (span, H, W, 3) or (B, span, H, W, 3) RGB frames, got shape "
+                f"{shape}"
             )
         if frames.dtype != np.uint8:
             raise ValueError(f"{what}: expected dtype uint8 (0..255), got {frames.dtype}")
         t, h, w = shape[-4], shape[-3], shape[-2]
-        if t != self.window:
+        if t != self.span:
             raise ValueError(
                 f"{what}: window of {t} frames, but the checkpoint {self.source} expects "
-                f"window={self.window}"
+                f"span={self.span} (frames={self.frames}, frame_stride="
+                f"{self.meta.model.frame_stride})"
             )
         if (h, w) != (self.image_size, self.image_size):
             raise ValueError(
@@ -160,7 +173,7 @@ class PressureModel:
 
     @torch.inference_mode()
     def predict(self, frames: np.ndarray, batch_size: int = 16) -> np.ndarray:
-        """frames: (T, H, W, 3) or (B, T, H, W, 3) uint8 RGB, oldest first.
+        """frames: (span, H, W, 3) or (B, span, H, W, 3) uint8 RGB, oldest first.
 
         returns: (H, W) or (B, H, W) float32 kPa.
         """
@@ -266,10 +279,10 @@ def _reference_meta(obj: dict[str, Any], path: Path) -> tuple[CheckpointMeta, di
         model = infer_model_config(state, dropout=float(obj.get("dropout_prob", 0.2)))
     except ValueError as e:
         raise CheckpointError(f"{path}: model_state_dict: {e}") from None
-    if "window_size" in obj and int(obj["window_size"]) != model.window:
+    if "window_size" in obj and int(obj["window_size"]) != model.frames:
         raise CheckpointError(
             f"{path}: window_size is {obj['window_size']} but the weights take "
-            f"{model.window} frames"
+            f"{model.frames} frames"
         )
     info = obj.get("data_loader_info") or {}
     geometry = SensorGeometry()

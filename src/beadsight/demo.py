@@ -206,14 +206,14 @@ def animation_frames(
 
     with open_dataset(data) as ds:
         start, stop = (int(v) for v in ds.presses[press])
-        ends = window_ends(ds.press_id, ds.valid, model.window, np.array([press]))
+        ends = window_ends(ds.press_id, ds.valid, model.span, np.array([press]))
         lo, hi = start - ANIMATION_MARGIN_FRAMES, stop + ANIMATION_MARGIN_FRAMES
         ends = ends[(ends >= lo) & (ends < hi)][:count]
         if ends.size == 0:
             raise DemoError(f"{data}: press {press} has no frame that ends a full window")
-        first = int(ends[0]) - model.window + 1
+        first = int(ends[0]) - model.span + 1
         frames = ds.read_frames(first, int(ends[-1]) + 1)
-        windows = np.stack([frames[e - first - model.window + 1 : e - first + 1] for e in ends])
+        windows = np.stack([frames[e - first - model.span + 1 : e - first + 1] for e in ends])
         pred = model.predict(windows, batch_size=batch_size)
         gt = label_maps(ds.force_n[ends], ds.position_mm[ends], ds.contact[ends], ds.geometry)
         geometry = ds.geometry
@@ -432,7 +432,7 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict:
 # --- demo --train -------------------------------------------------------------------
 def time_reference_step(batch: int = TIMING_BATCH, steps: int = 1) -> float:
     """Seconds per training *sample* of the reference network (256 px, width 16,
-    window 15): forward, backward and AdamW on random inputs, after one warm-up step."""
+    15 frames): forward, backward and AdamW on random inputs, after one warm-up step."""
     import torch
 
     from beadsight.config import ModelConfig
@@ -441,7 +441,7 @@ def time_reference_step(batch: int = TIMING_BATCH, steps: int = 1) -> float:
     net = UNet(ModelConfig(width=REFERENCE_WIDTH))
     opt = torch.optim.AdamW(net.parameters(), lr=1e-4)
     s = REFERENCE_IMAGE_SIZE
-    x = torch.randn(batch, 3 * ModelConfig().window, s, s)
+    x = torch.randn(batch, 3 * ModelConfig().frames, s, s)
     y = torch.rand(batch, 1, s, s)
 
     def step() -> None:

@@ -16,7 +16,6 @@ from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.dataset import DatasetError, DatasetWriter, open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.splits import split_presses, window_ends
-from beadsight.train.windows import dataset_fingerprint, resize_frames
 from beadsight.evaluation.evaluate import (
     EvaluationError,
     WindowReader,
@@ -25,6 +24,7 @@ from beadsight.evaluation.evaluate import (
     select_split,
 )
 from beadsight.geometry import total_force_n
+from beadsight.train.windows import dataset_fingerprint, resize_frames
 
 REQUIRED_KEYS = {
     "mae_kpa",
@@ -249,7 +249,7 @@ def test_resize_to_checkpoint_size(make_dataset, tmp_path):
     """A checkpoint trained at 32 px (train --image-size 32) on 64 px data, with --resize."""
     torch.manual_seed(0)
     meta = CheckpointMeta(
-        model=ModelConfig(window=15, width=8), geometry=SensorGeometry(image_size_px=32),
+        model=ModelConfig(frames=15, width=8), geometry=SensorGeometry(image_size_px=32),
         pixel_mean=[120.0] * 3, pixel_std=[40.0] * 3, output_scale_kpa=10.0,
     )  # fmt: skip
     model = PressureModel.create(meta)
