@@ -56,14 +56,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     _flag(
         p,
         "init",
-        "start from this checkpoint's weights and normalisation (fine-tuning); window, "
+        "start from this checkpoint's weights and normalisation (fine-tuning); frames, "
         "frame stride, width and up-kernel default to the checkpoint's",
         metavar="CHECKPOINT",
     )
     _flag(p, "weight-decay", "AdamW weight decay", type=float)
     _flag(p, "dropout", "dropout in the U-Net conv blocks", type=float)
     _flag(p, "width", "U-Net width (channels of the first block)", type=int)
-    _flag(p, "window", "frames the network sees per prediction", type=int)
+    _flag(p, "frames", "T: frames the network sees per prediction", type=int)
+    p.add_argument("--window", type=int, default=None, help=argparse.SUPPRESS)  # old --frames
     _flag(
         p,
         "frame-stride",
@@ -119,7 +120,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _train(args: argparse.Namespace) -> int:
     from beadsight.train.trainer import resolve_train_config, train
 
-    names = set(TrainConfig.__dataclass_fields__)
+    names = set(TrainConfig.__dataclass_fields__) | set(TrainConfig._renamed)  # old names warn
     overrides = {k: v for k, v in vars(args).items() if k in names}
     config = resolve_train_config(overrides, args.config)
     run = train(config)

@@ -62,9 +62,19 @@ from beadsight.checkpoint import (
     load_checkpoint,
     read_checkpoint_file,
 )
-from beadsight.config import ConfigError, ModelConfig, SensorGeometry, _Serializable, load_toml
+from beadsight.config import (
+    ConfigError,
+    ModelConfig,
+    SensorGeometry,
+    _Serializable,
+    load_toml,
+    renamed_fields,
+)
 from beadsight.data.dataset import Dataset, DatasetError, open_dataset
 from beadsight.data.splits import DEFAULT_FRACTIONS, SPLITS, split_presses, window_ends
+from beadsight.errors import BeadSightError
+from beadsight.geometry import disk_maps
+from beadsight.torch_device import DEVICE_CHOICES, resolve_device
 from beadsight.train.windows import (
     LOADER_MODES,
     DeviceFrames,
@@ -78,8 +88,6 @@ from beadsight.train.windows import (
     pixel_stats,
     window_frame_mask,
 )
-from beadsight.errors import BeadSightError
-from beadsight.geometry import disk_maps
 
 logger = logging.getLogger(__name__)
 
@@ -102,7 +110,7 @@ METRIC_KEYS = (
 # Fields a resumed run must share with the run it continues (others, e.g. steps, may change).
 MAX_LOG_INTERVAL_S = 60.0  # single-process runs also log at least this often
 RESUME_FIXED_FIELDS = (
-    "window",
+    "frames",
     "frame_stride",
     "width",
     "up_kernel",
@@ -119,11 +127,12 @@ RESUME_FIXED_FIELDS = (
 )
 LR_SCHEDULES = ("constant", "cosine")
 # Settings read from the ``init`` checkpoint when neither the TOML file nor a flag sets them.
-INIT_MODEL_FIELDS = ("window", "frame_stride", "width", "up_kernel")
+INIT_MODEL_FIELDS = ("frames", "frame_stride", "width", "up_kernel")
 # Of those, the ones the weights' shapes fix (a run may change the stride of its init).
-INIT_SHAPE_FIELDS = ("window", "width", "up_kernel")
+INIT_SHAPE_FIELDS = ("frames", "width", "up_kernel")
 
 
+@renamed_fields(window="frames")
 @dataclass(frozen=True)
 class TrainConfig(_Serializable):
     """Everything a training run depends on; stored as the run's config.json."""
@@ -140,7 +149,7 @@ class TrainConfig(_Serializable):
     weight_decay: float = 1e-4  # AdamW decoupled weight decay
     dropout: float = 0.2  # conv-block dropout
     width: int = 16  # U-Net channels of the first block
-    window: int = 15  # frames the network sees per prediction
+    frames: int = 15  # T: frames the network sees per prediction
     frame_stride: int = 1  # those frames are this many camera frames apart
     up_kernel: int = 1  # U-Net up-conv kernel (1 = reference weights, 3 = paper text)
     image_size: int | None = None  # train at this size (px, multiple of 8); None: the dataset's
@@ -197,8 +206,8 @@ class TrainConfig(_Serializable):
             )
         if self.precision not in PRECISIONS:
             raise ConfigError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
-        if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", str(self.device)):
-            raise ConfigError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
+        if not re.fullmatch(r"auto|cpu|mps|cuda(:\d+)?", str(self.device)):
+            raise ConfigError(f"device must be {DEVICE_CHOICES}, got {self.device!r}")
         if self.precision == "fp16" and self.device == "cpu":
             raise ConfigError("precision fp16 needs a CUDA device; use bf16 or fp32 on cpu")
         if self.loader not in LOADER_MODES:
@@ -215,11 +224,11 @@ class TrainConfig(_Serializable):
                 f"split must be three fractions (train, val, test) >= 0 summing to 1, got {self.split!r}"
             )
         object.__setattr__(self, "split", tuple(float(v) for v in split))
-        self.model_config()  # validates width, window, up_kernel, dropout
+        self.model_config()  # validates width, frames, up_kernel, dropout
 
     def model_config(self) -> ModelConfig:
         return ModelConfig(
-            window=self.window,
+            frames=self.frames,
             frame_stride=self.frame_stride,
             width=self.width,
             up_kernel=self.up_kernel,
@@ -228,7 +237,7 @@ class TrainConfig(_Serializable):
 
     @property
     def span(self) -> int:
-        """Frames in one training window (the model config's span)."""
+        """Consecutive frames one training window covers (the model config's span)."""
         return self.model_config().span
 
     def learning_rate(self, step: int, total_steps: int) -> float:
@@ -257,12 +266,14 @@ def resolve_train_config(
     if config_file is not None:
         raw = load_toml(config_file)
         file_values = raw["train"] if isinstance(raw.get("train"), dict) else raw
+        file_values = TrainConfig.upgrade_keys(file_values, source=str(config_file))
         unknown = sorted(set(file_values) - names)
         if unknown:
             raise ConfigError(
                 f"{config_file}: unknown training setting(s) {unknown}; known: {sorted(names)}"
             )
     given = {k: v for k, v in overrides.items() if v is not None}
+    given = TrainConfig.upgrade_keys(given, source="training settings")
     unknown = sorted(set(given) - names)
     if unknown:
         raise ConfigError(f"unknown training setting(s) {unknown}")
@@ -271,7 +282,8 @@ def resolve_train_config(
     stored = Path(str(early.get("out", ""))) / CONFIG_FILE
     if early.get("resume") and early.get("out") and stored.is_file():
         try:
-            values.update({k: v for k, v in json.loads(stored.read_text()).items() if k in names})
+            stored_values = TrainConfig.upgrade_keys(json.loads(stored.read_text()))
+            values.update({k: v for k, v in stored_values.items() if k in names})
         except json.JSONDecodeError as e:
             raise ConfigError(f"{stored}: not valid JSON ({e})") from None
     values.update(file_values)
@@ -392,21 +404,20 @@ class _Dist:
 
 
 def _resolve_device(config: TrainConfig) -> torch.device:
-    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    name = config.device
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise ConfigError(f"device {config.device!r}: CUDA is not available on this machine")
-        if name == "cuda":
-            name = f"cuda:{local_rank if int(os.environ.get('WORLD_SIZE', '1')) > 1 else 0}"
-        device = torch.device(name)
+    """The device by :func:`beadsight.torch_device.resolve_device`; a plain ``cuda`` under
+    torchrun is the process's ``LOCAL_RANK`` GPU."""
+    device = resolve_device(config.device, "device")
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if device.type == "cuda":
+        if device.index is None:
+            device = torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', '0')) if world > 1 else 0}")
         torch.cuda.set_device(device)
         return device
     if config.precision == "fp16":
-        raise ConfigError("precision fp16 needs a CUDA device; use bf16 or fp32 on cpu")
-    return torch.device("cpu")
+        raise ConfigError(f"precision fp16 needs a CUDA device; use bf16 or fp32 on {device}")
+    if device.type == "mps" and world > 1:
+        raise ConfigError("device mps: one process only (distributed training needs cuda or cpu)")
+    return device
 
 
 # --- the run folder -----------------------------------------------------------------
@@ -492,7 +503,7 @@ def _prepare_data(
         labels[name] = WindowLabels.from_dataset(ds, ends, image_size)
     if len(labels["train"]) == 0:
         raise ConfigError(
-            f"window {config.window} (frame stride {config.frame_stride}): no training window "
+            f"frames {config.frames} (frame stride {config.frame_stride}): no training window "
             f"fits in the {len(split['train'])} train presses of {ds.path} (each needs {span} "
             "consecutive valid frames)"
         )
@@ -509,7 +520,7 @@ def _split_record(config: TrainConfig, ds: Dataset, data: _Data) -> dict[str, An
         "num_presses": int(ds.num_presses),
         "fractions": list(config.split),
         "seed": config.seed,
-        "window": config.window,
+        "frames": config.frames,
         "frame_stride": config.frame_stride,
         **{name: [int(i) for i in data.split[name]] for name in SPLITS},
         "windows": {name: len(data.labels[name]) for name in data.labels},
