@@ -38,10 +38,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--precision", default="auto", help="auto (default), fp32, bf16")
     p.add_argument(
         "--preprocess",
-        default=None,
-        help="frame preprocessing: automatic by default (model-size frames as they are, "
-        "1280x1024 through the reference unwarp); or reference, reference-linear, none, or "
-        "a fisheye calibration .json",
+        default="auto",
+        help="frame preprocessing: auto (default: model-size frames as they are, 1280x1024 "
+        "through the reference unwarp, other sizes refused); or reference, reference-linear, "
+        "none, or a fisheye calibration .json",
     )
     p.add_argument(
         "--fps",
@@ -113,19 +113,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_live_command(args: argparse.Namespace) -> int:
-    from beadsight.live.sensor import LiveSensor, run_live
+    from beadsight.live.run import run_live
+    from beadsight.live.sensor import LiveSensor
+    from beadsight.live.settings import LiveSettings
 
-    sensor = LiveSensor(
-        args.checkpoint,
-        source=args.source,
+    settings = LiveSettings(
         backend=args.backend,
         precision=args.precision,
         preprocess=args.preprocess,
-        fps=args.fps,
+        source_fps=args.fps,
         loop=args.loop,
         seed=args.seed,
         max_readings=args.frames,
     )
+    sensor = LiveSensor(args.checkpoint, source=args.source, settings=settings)
     run_live(
         sensor,
         viewer=not args.no_viewer,
