@@ -69,14 +69,14 @@ def animation_frames(
 
     with open_dataset(data) as ds:
         start, stop = (int(v) for v in ds.presses[press])
-        ends = dataset_window_ends(ds, model.window, np.array([press]))
+        ends = dataset_window_ends(ds, model.span, np.array([press]))
         lo, hi = start - ANIMATION_MARGIN_FRAMES, stop + ANIMATION_MARGIN_FRAMES
         ends = ends[(ends >= lo) & (ends < hi)][:count]
         if ends.size == 0:
             raise DemoError(f"{data}: press {press} has no frame that ends a full window")
-        first = int(ends[0]) - model.window + 1
+        first = int(ends[0]) - model.span + 1
         frames = ds.read_frames(first, int(ends[-1]) + 1)
-        windows = np.stack([frames[e - first - model.window + 1 : e - first + 1] for e in ends])
+        windows = np.stack([frames[e - first - model.span + 1 : e - first + 1] for e in ends])
         pred = model.predict(windows, batch_size=batch_size)
         gt = label_maps(ds.force_n[ends], ds.position_mm[ends], ds.contact[ends], ds.geometry)
         geometry = ds.geometry

@@ -217,7 +217,7 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict:
 # --- demo --train -------------------------------------------------------------------
 def time_reference_step(batch: int = TIMING_BATCH, steps: int = 1) -> float:
     """Seconds per training *sample* of the reference network (256 px, width 16,
-    window 15): forward, backward and AdamW on random inputs, after one warm-up step."""
+    15 frames): forward, backward and AdamW on random inputs, after one warm-up step."""
     import torch
 
     from beadsight.config import ModelConfig
@@ -226,7 +226,7 @@ def time_reference_step(batch: int = TIMING_BATCH, steps: int = 1) -> float:
     net = UNet(ModelConfig(width=REFERENCE_WIDTH))
     opt = torch.optim.AdamW(net.parameters(), lr=1e-4)
     s = REFERENCE_IMAGE_SIZE
-    x = torch.randn(batch, 3 * ModelConfig().window, s, s)
+    x = torch.randn(batch, 3 * ModelConfig().frames, s, s)
     y = torch.rand(batch, 1, s, s)
 
     def step() -> None:

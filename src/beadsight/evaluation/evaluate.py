@@ -99,15 +99,15 @@ DEFINITIONS = {
 class WindowReader:
     """Reads frame windows for batches of end frames in increasing order.
 
-    The frames a batch shares with the previous one (the last ``window - 1``) are
+    The frames a batch shares with the previous one (the last ``span - 1``) are
     reused instead of read again; each contiguous run of the rest is read once.
     """
 
-    def __init__(self, ds: Dataset, window: int, image_size: int | None = None):
+    def __init__(self, ds: Dataset, span: int, image_size: int | None = None):
         self.ds = ds
-        self.window = window
+        self.span = span
         self.image_size = image_size or ds.image_size  # frames are resized to this (INTER_AREA)
-        self._offsets = np.arange(window - 1, -1, -1, dtype=np.int64)
+        self._offsets = np.arange(span - 1, -1, -1, dtype=np.int64)
         self._index = np.zeros(0, dtype=np.int64)  # sorted frame indices held in _frames
         self._frames = np.zeros((0, self.image_size, self.image_size, 3), dtype=np.uint8)
 
@@ -120,7 +120,7 @@ class WindowReader:
         return resize_frames(frames, self.image_size)
 
     def __call__(self, ends: np.ndarray) -> np.ndarray:
-        """(B,) end indices -> (B, T, S, S, 3) uint8 RGB windows, oldest frame first.
+        """(B,) end indices -> (B, span, S, S, 3) uint8 RGB windows, oldest frame first.
 
         S is ``image_size``."""
         ends = np.asarray(ends, dtype=np.int64)
@@ -137,14 +137,15 @@ class WindowReader:
         if missing.size:
             runs = np.split(missing, np.flatnonzero(np.diff(missing) != 1) + 1)
             block[~have] = np.concatenate([self._read(int(r[0]), int(r[-1]) + 1) for r in runs])
-        keep = max(need.size - (self.window - 1), 0)
+        keep = max(need.size - (self.span - 1), 0)
         self._index, self._frames = need[keep:], block[keep:].copy()
         return block[np.searchsorted(need, wanted)]
 
 
-def read_windows(ds: Dataset, ends: np.ndarray, window: int) -> np.ndarray:
-    """Frame windows ending at ``ends``: (B,) indices -> (B, T, S, S, 3) uint8 RGB, oldest first."""
-    return WindowReader(ds, window)(ends)
+def read_windows(ds: Dataset, ends: np.ndarray, span: int) -> np.ndarray:
+    """Frame windows ending at ``ends``: (B,) indices -> (B, span, S, S, 3) uint8 RGB, oldest
+    first."""
+    return WindowReader(ds, span)(ends)
 
 
 def evaluation_geometry(model: PressureModel, ds: Dataset, resize: bool = False) -> SensorGeometry:
@@ -262,7 +263,7 @@ def evaluate(
     The dict holds mae_kpa, force_error_pct, cop_error_mm, iou (0..1),
     region_mae_kpa (4x4, None for empty cells), worst_region_mae_kpa, frames and
     per-metric frame counts (see :meth:`beadsight.evaluation.metrics.MetricsAccumulator.result`),
-    plus split, split_source, presses, checkpoint, dataset, window, image_size,
+    plus split, split_source, presses, checkpoint, dataset, span, model_config, image_size,
     device, paper, definitions and (``baselines=True``) ``baselines``: the same
     metrics for an all-zero map ("zero") and the mean training label ("mean_gt").
     ``max_frames`` evaluates that many frames spread evenly over the split.
@@ -320,7 +321,7 @@ class _Run:
     def baseline_maps(self, selection: SplitSelection, ends: np.ndarray) -> dict[str, np.ndarray]:
         """The constant maps scored as baselines: all-zero and the mean training label."""
         ds, s = self.ds, self.geometry.image_size_px
-        train_ends = selection_ends(ds, selection, self.model.window, train=True)
+        train_ends = selection_ends(ds, selection, self.model.span, train=True)
         source = train_ends if train_ends.size else ends
         return {
             "zero": np.zeros((s, s), np.float32),
@@ -340,7 +341,7 @@ class _Run:
         accs = {name: MetricsAccumulator(self.geometry) for name in ("model", *base_maps)}
         examples = _example_frames(ds, ends, EXAMPLE_PRESSES)
         col = _Collected(examples, ds.press_id[examples[:TRACE_PRESSES]], {}, [])
-        reader = WindowReader(ds, model.window, self.geometry.image_size_px)
+        reader = WindowReader(ds, model.span, self.geometry.image_size_px)
         with ExitStack() as stack:
             writer = None
             if out is not None:
@@ -394,7 +395,8 @@ def _assemble(accs, model, ds, selection, ends, max_frames) -> dict:
         presses=int(np.unique(ds.press_id[ends]).size),
         checkpoint=str(model.source),
         dataset=str(ds.path),
-        window=model.window,
+        span=model.span,
+        model_config=model.meta.model.to_dict(),  # frames (T), frame_stride, ...
         image_size=model.image_size,
         device=str(model.device),
         max_frames=max_frames,
