@@ -15,21 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from browser_helpers import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
 from live_helpers import press_frames, tiny_model, write_video
 
 from beadsight.live.readings import open_readings
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-component-update",
-    "--disable-sync",
-]
-ARTIFACTS = Path(__file__).resolve().parents[2] / "artifacts"
 VIDEO_FPS = 30
 VIDEO_FRAMES = 210  # 7 s: long enough to load the page and watch it update
 
