@@ -20,6 +20,9 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
+import shutil
+import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -43,6 +46,19 @@ def describe_os_error(e: OSError) -> str:
     if e.errno == errno.EFBIG:
         return "file size limit reached"
     return e.strerror or str(e)
+
+
+def describe_write_failure(e: BaseException) -> str:
+    """The cause of a failed write from any library's error: ``describe_os_error`` of its
+    errno, also when the errno is only in the text (h5py: ``... errno = 28, ...``)."""
+    number = getattr(e, "errno", None)
+    if not number:
+        match = re.search(r"errno = (\d+)", str(e))
+        number = int(match.group(1)) if match else None
+    if number:
+        return describe_os_error(OSError(number, os.strerror(number)))
+    text = str(e)
+    return text.splitlines()[0] if text else type(e).__name__
 
 
 def write_error(path: str | Path, e: OSError) -> WriteError:
@@ -165,3 +181,15 @@ def remove_stale_temps(folder: str | Path, name: str) -> list[Path]:
         except OSError:
             pass
     return removed
+
+
+def free_bytes(folder: str | Path) -> int:
+    """Bytes an unprivileged writer may still write in ``folder``'s file system.
+
+    For writers that stop cleanly before a disk fills (HDF5 cannot recover from a write
+    that fails half-way); where the file system cannot tell, a very large number.
+    """
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return sys.maxsize
