@@ -18,19 +18,15 @@ from __future__ import annotations
 
 import argparse
 import io
-import os
-import queue
 import re
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))  # the browser settings the tests use
-from browser_helpers import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
+sys.path.insert(0, str(ROOT / "tests"))  # Chromium settings and the child process of the tests
+from browser_helpers import CHROMIUM, CHROMIUM_ARGS, Beadsight  # noqa: E402
 
 README = ROOT / "README.md"
 IMAGES = ROOT / "docs" / "images"
@@ -96,33 +92,6 @@ def replace_between_markers(text: str, body: str) -> str:
 
 
 # --- the viewer screenshot ----------------------------------------------------------------
-def _start_live(record_dir: Path) -> tuple[subprocess.Popen, str]:
-    command = [sys.executable, "-m", "beadsight", "live", "--source", "sim", "--port", "0",
-               "--stream-port", "0", "--record-dir", str(record_dir), "--report-every", "60"]  # fmt: skip
-    proc = subprocess.Popen(
-        command,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(x) for x in proc.stdout], daemon=True).start()
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while time.monotonic() < deadline:
-        try:
-            line = lines.get(timeout=1)
-        except queue.Empty:
-            if proc.poll() is not None:
-                break
-            continue
-        match = re.search(r"viewer: (http://\S+)", line)
-        if match:
-            return proc, match.group(1)
-    proc.kill()
-    raise SystemExit("beadsight live --source sim did not print its viewer address")
-
-
 def _force(page) -> float:
     try:
         return float(page.locator("#force-value").inner_text())
@@ -152,8 +121,11 @@ def viewer_screenshot(path: Path) -> int:
     from playwright.sync_api import sync_playwright
 
     with tempfile.TemporaryDirectory() as records:
-        proc, url = _start_live(Path(records))
+        live = Beadsight("live", "--source", "sim", "--port", "0", "--stream-port", "0",
+                         "--record-dir", records, "--report-every", "60")  # fmt: skip
+        proc = live.proc
         try:
+            url = live.wait_line(r"viewer: (http://\S+)", START_TIMEOUT_S).group(1)
             with sync_playwright() as pw:
                 browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
                 page = browser.new_page(viewport=VIEWPORT)
