@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import os
 import re
 import sys
 import tempfile
@@ -120,9 +121,14 @@ def viewer_screenshot(path: Path) -> int:
     from PIL import Image
     from playwright.sync_api import sync_playwright
 
+    from beadsight.checkpoint import shipped_model_path
+
+    model = shipped_model_path()  # named relative to the repository: the page shows it
+    if model.is_relative_to(ROOT):
+        model = model.relative_to(ROOT)
     with tempfile.TemporaryDirectory() as records:
-        live = Beadsight("live", "--source", "sim", "--port", "0", "--stream-port", "0",
-                         "--record-dir", records, "--report-every", "60")  # fmt: skip
+        live = Beadsight("live", "--checkpoint", str(model), "--source", "sim", "--port", "0",
+                         "--stream-port", "0", "--record-dir", records, "--report-every", "60")  # fmt: skip
         proc = live.proc
         try:
             url = live.wait_line(r"viewer: (http://\S+)", START_TIMEOUT_S).group(1)
@@ -136,7 +142,7 @@ def viewer_screenshot(path: Path) -> int:
                 )
                 _wait_for_press(page, PRESSES_BEFORE_SHOT)
                 time.sleep(PLATEAU_WAIT_S)
-                shot = page.screenshot()
+                shot = page.screenshot(full_page=True)
                 browser.close()
         finally:
             proc.terminate()
@@ -161,6 +167,7 @@ def main() -> int:
     parser.add_argument("--no-screenshot", action="store_true", help="only the metrics table")
     parser.add_argument("--no-demo", action="store_true", help="only the screenshot")
     args = parser.parse_args()
+    os.chdir(ROOT)
     if not args.no_demo:
         with tempfile.TemporaryDirectory() as out:
             summary = run_demo(Path(out) / "demo")
