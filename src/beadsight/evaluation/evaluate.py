@@ -13,7 +13,12 @@ previous press), compares with the ground truth of
   ``force_gt_n``/``force_pred_n`` (N,) N, ``cop_gt_mm``/``cop_pred_mm`` (N, 2) mm
   (NaN where that map has no positive pressure), ``index`` (N,) dataset frame
   index, appended batch by batch under a temporary name;
-* ``examples.png``, ``region_error.png``, ``force_traces.png``.
+* ``examples.png``, ``region_error.png``, ``force_traces.png``;
+* ``index.html``: the report page (:mod:`beadsight.evaluation.report`).
+
+A write that fails (disk full) raises :class:`beadsight.files.WriteError`; no file
+is left damaged under its final name (``predictions.h5`` is written as
+``predictions.h5.partial`` and removed on failure).
 
 Memory stays bounded by the batch size whatever the dataset's length. Which
 presses or frames form a split: :mod:`beadsight.evaluation.selection`.
@@ -23,8 +28,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import tempfile
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +50,7 @@ from beadsight.evaluation.plots import (
     plot_region_errors,
 )
 from beadsight.evaluation.predict import IncrementalH5, as_model
+from beadsight.evaluation.report import REPORT_FILE, evaluation_report, write_report
 from beadsight.evaluation.selection import (
     SPLIT_CHOICES,
     EvaluationError,
@@ -57,6 +61,7 @@ from beadsight.evaluation.selection import (
     selection_ends,
     subsample,
 )
+from beadsight.files import atomic_write_json
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +82,7 @@ EXAMPLE_PRESSES = 4  # presses shown in examples.png (the frame of peak force of
 TRACE_PRESSES = 3  # presses shown in force_traces.png
 MEAN_MAP_MAX_FRAMES = 4096  # training frames averaged for the mean-map baseline
 METRICS_FILE = "metrics.json"
-METRICS_FILE_MODE = 0o644  # mkstemp makes 0600 files; results are meant to be shared
+METRICS_FILE_MODE = 0o644  # results are meant to be shared
 PREDICTIONS_FILE = "predictions.h5"
 EXAMPLES_PLOT = "examples.png"
 REGION_PLOT = "region_error.png"
@@ -257,6 +262,7 @@ def evaluate(
     plots: bool = True,
     resize: bool = False,
     progress: bool = True,
+    report: bool = True,
 ) -> dict:
     """Evaluate ``checkpoint`` on the ``split`` of dataset ``data``; returns the metrics dict.
 
@@ -269,7 +275,7 @@ def evaluate(
     ``max_frames`` evaluates that many frames spread evenly over the split.
     ``resize`` allows a checkpoint trained at another image size (see
     :func:`evaluation_geometry`). With ``out_dir`` the files of the module
-    docstring are written there.
+    docstring are written there (``report=False``: all but ``index.html``).
     """
     if batch_size < 1:
         raise EvaluationError(f"--batch-size must be >= 1, got {batch_size}")
@@ -303,8 +309,12 @@ def evaluate(
             metrics["files"] = {"metrics": METRICS_FILE, "predictions": PREDICTIONS_FILE}
             if plots:
                 metrics["files"].update(_write_plots(out, ds, run.geometry, col, metrics))
+            if report:
+                metrics["files"]["report"] = REPORT_FILE
     if out is not None:
         write_metrics_json(metrics, out / METRICS_FILE)
+        if report:
+            write_report(evaluation_report(metrics, geometry=run.geometry), out)
         log.info("wrote %s", out)
     return metrics
 
@@ -464,16 +474,4 @@ def _write_plots(
 
 def write_metrics_json(metrics: dict, path: str | Path) -> Path:
     """Write ``metrics`` as strict JSON (raises ValueError on NaN/inf), atomically."""
-    path = Path(path)
-    text = json.dumps(metrics, indent=2, allow_nan=False)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text + "\n")
-        os.chmod(tmp, METRICS_FILE_MODE)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write_json(path, metrics, strict=True, mode=METRICS_FILE_MODE)

@@ -4,7 +4,8 @@
 window (memory does not grow with the recording's length), predicts in batches
 and appends the results to an HDF5 file written under a temporary name and
 renamed into place at the end, so an interrupted run never leaves a truncated
-file where a finished one is expected.
+file where a finished one is expected. A write that fails (disk full) raises
+:class:`beadsight.files.WriteError` naming the file; the partial file is removed.
 
 Output layout (``format = "beadsight-predictions"``), one row per input frame:
 
@@ -32,7 +33,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -49,6 +49,7 @@ from beadsight.data.dataset import open_dataset
 from beadsight.errors import BeadSightError
 from beadsight.evaluation.config import DEFAULT_DEVICE, PREDICT_PREPROCESS
 from beadsight.evaluation.config import PREDICT_BATCH_SIZE as DEFAULT_BATCH_SIZE
+from beadsight.evaluation.h5writer import IncrementalH5
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
 from beadsight.inference.frames import check_preprocess, input_converter
 from beadsight.preprocess import FrameSizeError
@@ -58,8 +59,6 @@ log = logging.getLogger(__name__)
 
 PREDICTIONS_FORMAT = "beadsight-predictions"
 PREDICTIONS_FORMAT_VERSION = 2  # 2: attributes "frames" and "span" replace "window"
-H5_COMPRESSION = "gzip"
-H5_COMPRESSION_LEVEL = 1  # gzip level: ~2x faster than 4 on float maps, ~5 % larger
 READ_CHUNK_FRAMES = 64  # frames read from a dataset at a time
 
 
@@ -73,66 +72,6 @@ def as_model(checkpoint: PressureModel | str | Path, device: str | torch.device)
     PressureModel is moved, a path is loaded."""
     model = checkpoint if isinstance(checkpoint, PressureModel) else load_checkpoint(checkpoint)
     return model.to(resolve_device(device, "--device"))
-
-
-# --- incremental HDF5 ---------------------------------------------------------------
-class IncrementalH5:
-    """Append rows to resizable HDF5 datasets in ``<path>.partial``; rename on finish.
-
-    specs: {name: (row_shape, dtype, compress)}; compressed datasets use gzip with
-    one row per chunk. Use as a context manager: an exception deletes the partial
-    file and leaves any existing ``path`` untouched.
-    """
-
-    def __init__(self, path: str | Path, specs: dict[str, tuple[tuple[int, ...], object, bool]]):
-        self.path = Path(path)
-        self.partial = self.path.with_name(self.path.name + ".partial")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.file = h5py.File(self.partial, "w")
-        self.rows = 0
-        for name, (row_shape, dtype, compress) in specs.items():
-            chunk_rows = 1 if compress else 4096
-            ds = self.file.create_dataset(
-                name,
-                (0, *row_shape),
-                dtype=dtype,
-                maxshape=(None, *row_shape),
-                chunks=(chunk_rows, *row_shape),
-                compression=H5_COMPRESSION if compress else None,
-                compression_opts=H5_COMPRESSION_LEVEL if compress else None,
-            )
-            ds.attrs["row_shape"] = json.dumps(list(row_shape))
-
-    def append(self, **columns: np.ndarray) -> None:
-        """Append n rows; every dataset must receive the same number of rows."""
-        lengths = {len(v) for v in columns.values()}
-        if len(lengths) != 1 or set(columns) != set(self.file.keys()):
-            raise ValueError(f"append needs one row count for all of {sorted(self.file.keys())}")
-        n = lengths.pop()
-        for name, values in columns.items():
-            ds = self.file[name]
-            ds.resize(self.rows + n, axis=0)
-            ds[self.rows :] = values
-        self.rows += n
-
-    def finish(self) -> Path:
-        self.file.close()
-        os.replace(self.partial, self.path)
-        return self.path
-
-    def abort(self) -> None:
-        if self.file.id.valid:
-            self.file.close()
-        self.partial.unlink(missing_ok=True)
-
-    def __enter__(self) -> IncrementalH5:
-        return self
-
-    def __exit__(self, exc_type, *exc: object) -> None:
-        if exc_type is None:
-            self.finish()
-        else:
-            self.abort()
 
 
 # --- ring buffer --------------------------------------------------------------------
