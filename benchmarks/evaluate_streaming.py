@@ -26,6 +26,7 @@ from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.dataset import DatasetWriter
 from beadsight.evaluation.evaluate import evaluate
+from beadsight.inference.machine import cpu_summary
 
 FRAMES_PER_PRESS = 60
 MIB = 2**20
@@ -57,6 +58,7 @@ def main() -> int:
     parser.add_argument("--device", default="auto")
     parser.add_argument("--json", action="store_true", help="print results as JSON")
     args = parser.parse_args()
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
 
     geometry = SensorGeometry(image_size_px=args.image_size)
     meta = CheckpointMeta(

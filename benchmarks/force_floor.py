@@ -19,9 +19,11 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
+from beadsight.inference.machine import cpu_summary
 from beadsight.sim import SimConfig, SimulatedSession
 from beadsight.sim.dataset import ScaleLog
 
@@ -35,6 +37,7 @@ def main() -> None:
     parser.add_argument("--presses", type=int, default=100)
     parser.add_argument("--seed", type=int, default=200)
     args = parser.parse_args()
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
 
     cfg = SimConfig()
     log, t, true_f, depth, radius = ScaleLog(), [], [], [], []

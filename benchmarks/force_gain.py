@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import h5py
@@ -33,6 +34,7 @@ from beadsight.checkpoint import load_checkpoint
 from beadsight.data.dataset import open_dataset
 from beadsight.data.splits import window_ends
 from beadsight.geometry import total_force_n
+from beadsight.inference.machine import cpu_summary
 
 
 def press_gain(data: str, eval_dir: str) -> None:
@@ -100,6 +102,7 @@ def main() -> None:
     d.add_argument("--noise-std", type=float, default=0.05)
     d.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
     if args.command == "press-gain":
         press_gain(args.data, args.eval)
     else:

@@ -22,6 +22,7 @@ import sys
 
 import torch
 
+from beadsight.inference.machine import cpu_summary
 from beadsight.inference.runtimes import BackendError, openvino_supports_bf16
 from beadsight.live.bench import (
     add_model_arguments,
@@ -57,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="one JSON object per row")
     add_model_arguments(parser)
     args = parser.parse_args(argv)
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
 
     model = model_from_arguments(args)
     frames, source = simulated_frames(model.image_size, min(args.frames, 300))

@@ -31,6 +31,7 @@ import torch
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel, load_checkpoint
 from beadsight.config import ModelConfig, SensorGeometry
+from beadsight.inference.machine import cpu_summary
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.settings import LiveSettings
 
@@ -155,6 +156,7 @@ def main() -> int:
     parser.add_argument("--stream", action="store_true", help="stream to one TCP client")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
     if args.checkpoint:
         targets = [(args.checkpoint, load_checkpoint(args.checkpoint))]
     else:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -35,6 +36,7 @@ from train_speed import DTYPES, make_step, sync  # sibling script (benchmarks/ i
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import DatasetWriter, open_dataset
 from beadsight.data.splits import window_ends
+from beadsight.inference.machine import cpu_summary
 from beadsight.train.windows import (
     DeviceFrames,
     DeviceWindows,
@@ -128,6 +130,7 @@ def main() -> None:
     )
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)

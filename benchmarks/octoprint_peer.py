@@ -34,7 +34,6 @@ import inspect
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -49,6 +48,7 @@ from beadsight.devices import (
     PrinterError,
     SafetyEnvelope,
 )
+from beadsight.inference.machine import cpu_summary
 
 BRIDGE = Path(__file__).with_name("octoprint_bridge.py")
 ENV_VAR = "BEADSIGHT_OCTOPRINT_PYTHON"
@@ -292,14 +292,6 @@ def make_printer(port: str) -> MarlinPrinter:
     return MarlinPrinter(port, **{k: v for k, v in kwargs.items() if k in accepted})
 
 
-def cpu_model() -> str:
-    try:  # the project's one CPU-name reader (it lives with the inference runtimes)
-        from beadsight.inference.runtimes import _cpu_name
-    except ImportError:
-        return platform.processor() or platform.machine()
-    return _cpu_name()
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--octoprint-python", default=os.environ.get(ENV_VAR))
@@ -315,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         peer = Peer(args.octoprint_python, Path(tmp) / "received.txt")
         printer = make_printer(peer.port)
-        print(f"OctoPrint {peer.version} virtual printer on {peer.port}; CPU: {cpu_model()}")
+        print(f"OctoPrint {peer.version} virtual printer on {peer.port}; {cpu_summary()}")
         results = []
         try:
             session = Session(peer, printer)

@@ -30,10 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
+from beadsight.config import REFERENCE_CENTRE_XY_MM
+from beadsight.inference.machine import cpu_summary
+
 FPS = 30.0
 SCALE_HZ = 80.0
 PRESS_PERIOD_S = 10.0
-CENTRE = (151.8, 108.9)
+CENTRE = REFERENCE_CENTRE_XY_MM
 G_TO_N = 9.81e-3
 
 
@@ -103,6 +106,7 @@ def synthesize(raw: Path, frames: int, unique: int) -> None:
 
 _CHILD = """
 import json, resource, sys, time
+from beadsight.inference.machine import cpu_summary
 from beadsight.data.process import ProcessConfig, process_recording
 config = ProcessConfig(**json.loads(sys.argv[3]))
 def cpu():
@@ -210,6 +214,7 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=None, help="where to write (default tmp)")
     parser.add_argument("--json", action="store_true", help="print one JSON line")
     args = parser.parse_args()
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
     config = {
         "image_size": args.image_size,
         "interpolation": args.interpolation,

@@ -22,8 +22,10 @@ import argparse
 import itertools
 import json
 import os
+import sys
 import time
 
+from beadsight.inference.machine import cpu_summary
 from beadsight.sim import PouchSimulator, SimConfig, SimulatedSession
 
 
@@ -84,6 +86,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed passes (best is kept)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args()
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
 
     results: dict[str, float] = {}
     for name, (wall, cpu) in (

@@ -24,6 +24,7 @@ import time
 
 import numpy as np
 
+from beadsight.inference.machine import cpu_summary
 from beadsight.inference.predictor import PressurePredictor
 from beadsight.live.bench import add_model_arguments, model_from_arguments, simulated_frames
 
@@ -56,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
     add_model_arguments(parser)
     args = parser.parse_args(argv)
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
 
     model = model_from_arguments(args)
     frames, source = simulated_frames(model.image_size, SOURCE_FRAMES)

@@ -23,8 +23,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from viewer_idle_clients import cpu_model, tiny_model
+from viewer_idle_clients import tiny_model
 
+from beadsight.inference.machine import cpu_summary
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.stream import StreamServer
 
@@ -64,7 +65,8 @@ def main() -> None:
     parser.add_argument("--interval", type=float, default=0.1, help="client's wait per reading")
     parser.add_argument("--fps", type=float, default=30.0, help="simulator rate")
     args = parser.parse_args()
-    print(f"CPU: {cpu_model()}; client reads one reading every {args.interval:g} s")
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
+    print(f"client reads one reading every {args.interval:g} s")
     model = tiny_model()
     for rcvbuf in args.rcvbuf:
         run(model, rcvbuf, args)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
 
 import numpy as np
@@ -27,6 +28,7 @@ import torch
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.labels import label_maps
+from beadsight.inference.machine import cpu_summary
 from beadsight.train.step import autocast, optimizer_step
 
 DTYPES = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}
@@ -138,6 +140,7 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args()
+    print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(

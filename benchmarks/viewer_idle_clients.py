@@ -17,11 +17,11 @@ achieved sensing rate, how many connections the viewer answered with 200 (served
 from __future__ import annotations
 
 import argparse
-import platform
 import socket
 import time
 
 from beadsight.checkpoint import PressureModel
+from beadsight.inference.machine import cpu_summary
 from beadsight.live.bench import random_model
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.viewer.server import ViewerServer
@@ -32,17 +32,6 @@ REQUEST = b"GET /events HTTP/1.1\r\nHost: 127.0.0.1:%d\r\nAccept: text/event-str
 def tiny_model() -> PressureModel:
     """The 64 px, width-8 model of the live tests, random weights (same cost as trained)."""
     return random_model(image_size=64, frames=15, width=8)
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def open_idle(port: int, count: int) -> list[socket.socket]:
@@ -106,7 +95,7 @@ def main() -> None:
         help="the viewer's connection cap (default: its own)",
     )
     args = parser.parse_args()
-    print(f"CPU: {cpu_model()} ({len(__import__('os').sched_getaffinity(0))} cores available)")
+    print(cpu_summary())
     model = tiny_model()
     for clients in args.clients:
         run(model, clients, args)

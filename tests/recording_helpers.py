@@ -13,10 +13,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from beadsight.config import REFERENCE_CENTRE_XY_MM
 from beadsight.data.recording import RecordingWriter
 from beadsight.devices.base import CommandRecord, ScaleReading
 
-CENTRE = (151.8, 108.9)
+CENTRE = REFERENCE_CENTRE_XY_MM
 T0_UNIX = 1.7e9
 T0_MONO = 5000.0
 G_TO_N = 9.81e-3

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from beadsight.config import ConfigError
+from beadsight.config import REFERENCE_CENTRE_XY_MM, ConfigError
 from beadsight.devices import (
     CommandRecord,
     DeviceNotConnectedError,
@@ -24,7 +24,7 @@ from beadsight.devices.virtual import VirtualPrinter
 
 pytest.importorskip("serial")
 
-CENTRE = (151.8, 108.9)
+CENTRE = REFERENCE_CENTRE_XY_MM
 ENVELOPE = SafetyEnvelope(
     centre_xy_mm=CENTRE, xy_half_range_mm=15.0, z_floor_mm=126.5, z_clear_mm=135.0
 )

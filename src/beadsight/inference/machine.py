@@ -44,6 +44,27 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+PERFORMANCE_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_tile")
+
+
+def cpu_flags() -> list[str]:
+    """The CPU's vector-instruction flags that decide inference speed (of PERFORMANCE_FLAGS)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                present = set(line.split(":", 1)[1].split())
+                return [f for f in PERFORMANCE_FLAGS if f in present]
+    except OSError:
+        pass
+    return []
+
+
+def cpu_summary() -> str:
+    """One line for benchmark output: CPU model, cores this process may use, and flags."""
+    flags = " ".join(cpu_flags()) or "none of " + "/".join(PERFORMANCE_FLAGS[:3])
+    return f"CPU: {cpu_name()}; {default_threads()} cores available; flags: {flags}"
+
+
 def machine_key() -> str:
     """Short hash of what makes timings and compiled code machine-specific."""
     parts = [platform.machine(), cpu_name(), str(default_threads()), torch.__version__]
