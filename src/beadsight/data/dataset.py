@@ -158,6 +158,40 @@ def open_dataset(path: str | Path, thresholds: ContactThresholds = ContactThresh
 
 
 def _read(f: h5py.File, path: Path, thresholds: ContactThresholds) -> Dataset:
+    is_reference = _check_format(f, path)
+    frames = _frames(f, path, is_reference)
+    load = _loader(f, path, frames.shape[0])
+    fields = (_reference_fields if is_reference else _fields)(f, path, frames, load)
+    force, position, valid = fields["force_n"], fields["position_mm"], fields["valid"]
+    bad = np.flatnonzero(valid & ~np.isfinite(force))
+    if len(bad):
+        raise DatasetError(
+            f"{path}: field 'force' has {len(bad)} NaN/inf values at valid frames (first at frame "
+            f"{bad[0]}); expected finite newtons, or mark those frames invalid"
+        )
+    bad = np.flatnonzero(valid & ~np.isfinite(position).all(axis=1))
+    if len(bad):
+        raise DatasetError(
+            f"{path}: field 'position' has non-finite values at valid frames (first at frame {bad[0]})"
+        )
+    contact, press_id, presses = segment_presses(force, valid, position, thresholds)
+    mean, std = fields.pop("pixel_mean"), fields.pop("pixel_std")
+    return Dataset(
+        path=path,
+        frames=frames,
+        contact=contact,
+        press_id=press_id,
+        presses=presses,
+        pixel_mean=None if mean is None else np.asarray(mean, np.float64).reshape(3),
+        pixel_std=None if std is None else np.asarray(std, np.float64).reshape(3),
+        is_reference=is_reference,
+        _file=f,
+        **fields,
+    )
+
+
+def _check_format(f: h5py.File, path: Path) -> bool:
+    """True for the reference's processed layout; DatasetError for anything unknown."""
     fmt = f.attrs.get("format")
     is_reference = fmt is None and "images" in f
     if fmt is None and not is_reference:
@@ -172,6 +206,10 @@ def _read(f: h5py.File, path: Path, thresholds: ContactThresholds) -> Dataset:
             f"{path}: format_version {f.attrs['format_version']} is newer than this beadsight "
             f"reads ({FORMAT_VERSION}); upgrade beadsight"
         )
+    return is_reference
+
+
+def _frames(f: h5py.File, path: Path, is_reference: bool) -> h5py.Dataset:
     frames = _get(
         f, path, ("images",) if is_reference else ("frames",), "(N, H, W, 3) uint8 frames"
     )
@@ -181,7 +219,11 @@ def _read(f: h5py.File, path: Path, thresholds: ContactThresholds) -> Dataset:
         )
     if frames.dtype != np.uint8:
         raise DatasetError(f"{path}: '{frames.name[1:]}' has dtype {frames.dtype}; expected uint8")
-    n = frames.shape[0]
+    return frames
+
+
+def _loader(f: h5py.File, path: Path, n: int):
+    """``load(names, expected, shape)``: a whole field, its shape checked (rows = ``n``)."""
 
     def load(names: tuple[str, ...], expected: str, shape: tuple[int, ...]) -> np.ndarray:
         ds = _get(f, path, names, expected)
@@ -191,81 +233,64 @@ def _read(f: h5py.File, path: Path, thresholds: ContactThresholds) -> Dataset:
             )
         return ds[()]
 
-    if is_reference:
-        unit = f.attrs.get("force_unit", "g")
-        unit = unit.decode() if isinstance(unit, bytes) else str(unit)
-        raw_force = load(("forces",), "(N,) force readings", (n,))
-        force = force_to_newtons(raw_force.astype(np.float64), unit)
-        position = load(("position",), "(N, 2) mm", (n, 2)).astype(np.float64)
-        valid = load(("valid",), "(N,) bool", (n,)).astype(bool)
-        timestamp = load(("time",), "(N,) unix seconds", (n,)).astype(np.float64)
-        channel_order = "BGR"
-        geometry = _reference_geometry(f, frames.shape[1])
-        fps = float(np.asarray(f.attrs.get("fps", 30.0)).reshape(-1)[0])
-        provenance = {"source": "reference", "file": str(path)}
-        mean = f.attrs.get("pixel_mean")
-        std = f.attrs.get("pixel_std")
-    else:
-        force_ds = _get(f, path, ("force",), "(N,) float64 force")
-        unit = force_ds.attrs.get("unit", "N")
-        force = force_to_newtons(
-            load(("force",), "(N,) force", (n,)).astype(np.float64),
-            unit.decode() if isinstance(unit, bytes) else unit,
-        )
-        position = load(("position",), "(N, 2) float64 mm", (n, 2)).astype(np.float64)
-        valid = load(("valid",), "(N,) bool", (n,)).astype(bool)
-        timestamp = load(("timestamp",), "(N,) float64 unix seconds", (n,)).astype(np.float64)
-        order = frames.attrs.get("channel_order", "RGB")
-        channel_order = order.decode() if isinstance(order, bytes) else str(order)
-        if channel_order not in ("RGB", "BGR"):
-            raise DatasetError(
-                f"{path}: frames attribute 'channel_order' is {channel_order!r}; expected RGB or BGR"
-            )
-        try:
-            geometry = SensorGeometry.from_dict(_attr_json(f, "geometry", {}))
-        except (ValueError, TypeError) as e:
-            raise DatasetError(f"{path}: attribute 'geometry': {e}") from None
-        if geometry.image_size_px != frames.shape[1]:
-            raise DatasetError(
-                f"{path}: attribute 'geometry' says image_size_px={geometry.image_size_px} but "
-                f"frames are {frames.shape[1]} px"
-            )
-        fps = float(f.attrs.get("fps", 30.0))
-        provenance = _attr_json(f, "provenance", {})
-        mean = f.attrs.get("pixel_mean")
-        std = f.attrs.get("pixel_std")
+    return load
 
-    bad = np.flatnonzero(valid & ~np.isfinite(force))
-    if len(bad):
+
+def _text(value: Any) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _reference_fields(f: h5py.File, path: Path, frames: h5py.Dataset, load) -> dict[str, Any]:
+    """The reference's layout: grams (or its force_unit), BGR frames, float32 unix times."""
+    n = frames.shape[0]
+    raw_force = load(("forces",), "(N,) force readings", (n,))
+    return {
+        "force_n": force_to_newtons(
+            raw_force.astype(np.float64), _text(f.attrs.get("force_unit", "g"))
+        ),
+        "position_mm": load(("position",), "(N, 2) mm", (n, 2)).astype(np.float64),
+        "valid": load(("valid",), "(N,) bool", (n,)).astype(bool),
+        "timestamp_s": load(("time",), "(N,) unix seconds", (n,)).astype(np.float64),
+        "channel_order": "BGR",
+        "geometry": _reference_geometry(f, frames.shape[1]),
+        "fps": float(np.asarray(f.attrs.get("fps", 30.0)).reshape(-1)[0]),
+        "provenance": {"source": "reference", "file": str(path)},
+        "pixel_mean": f.attrs.get("pixel_mean"),
+        "pixel_std": f.attrs.get("pixel_std"),
+    }
+
+
+def _fields(f: h5py.File, path: Path, frames: h5py.Dataset, load) -> dict[str, Any]:
+    """This project's layout (docs/data-format.md)."""
+    n = frames.shape[0]
+    unit = _get(f, path, ("force",), "(N,) float64 force").attrs.get("unit", "N")
+    channel_order = _text(frames.attrs.get("channel_order", "RGB"))
+    if channel_order not in ("RGB", "BGR"):
         raise DatasetError(
-            f"{path}: field 'force' has {len(bad)} NaN/inf values at valid frames (first at frame "
-            f"{bad[0]}); expected finite newtons, or mark those frames invalid"
+            f"{path}: frames attribute 'channel_order' is {channel_order!r}; expected RGB or BGR"
         )
-    bad = np.flatnonzero(valid & ~np.isfinite(position).all(axis=1))
-    if len(bad):
+    try:
+        geometry = SensorGeometry.from_dict(_attr_json(f, "geometry", {}))
+    except (ValueError, TypeError) as e:
+        raise DatasetError(f"{path}: attribute 'geometry': {e}") from None
+    if geometry.image_size_px != frames.shape[1]:
         raise DatasetError(
-            f"{path}: field 'position' has non-finite values at valid frames (first at frame {bad[0]})"
+            f"{path}: attribute 'geometry' says image_size_px={geometry.image_size_px} but "
+            f"frames are {frames.shape[1]} px"
         )
-    contact, press_id, presses = segment_presses(force, valid, position, thresholds)
-    return Dataset(
-        path=path,
-        frames=frames,
-        channel_order=channel_order,
-        force_n=force,
-        position_mm=position,
-        valid=valid,
-        timestamp_s=timestamp,
-        contact=contact,
-        press_id=press_id,
-        presses=presses,
-        geometry=geometry,
-        fps=fps,
-        pixel_mean=None if mean is None else np.asarray(mean, np.float64).reshape(3),
-        pixel_std=None if std is None else np.asarray(std, np.float64).reshape(3),
-        provenance=provenance,
-        is_reference=is_reference,
-        _file=f,
-    )
+    force = load(("force",), "(N,) force", (n,)).astype(np.float64)
+    return {
+        "force_n": force_to_newtons(force, _text(unit)),
+        "position_mm": load(("position",), "(N, 2) float64 mm", (n, 2)).astype(np.float64),
+        "valid": load(("valid",), "(N,) bool", (n,)).astype(bool),
+        "timestamp_s": load(("timestamp",), "(N,) float64 unix seconds", (n,)).astype(np.float64),
+        "channel_order": channel_order,
+        "geometry": geometry,
+        "fps": float(f.attrs.get("fps", 30.0)),
+        "provenance": _attr_json(f, "provenance", {}),
+        "pixel_mean": f.attrs.get("pixel_mean"),
+        "pixel_std": f.attrs.get("pixel_std"),
+    }
 
 
 def __getattr__(name: str) -> Any:
