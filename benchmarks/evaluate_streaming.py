@@ -60,7 +60,7 @@ def main() -> int:
 
     geometry = SensorGeometry(image_size_px=args.image_size)
     meta = CheckpointMeta(
-        model=ModelConfig(window=15, width=args.width), geometry=geometry,
+        model=ModelConfig(frames=15, width=args.width), geometry=geometry,
         pixel_mean=[128.0] * 3, pixel_std=[40.0] * 3, output_scale_kpa=10.0,
     )  # fmt: skip
     torch.manual_seed(0)

@@ -63,7 +63,7 @@ def press_gain(data: str, eval_dir: str) -> None:
 def dropout_shift(args: argparse.Namespace) -> None:
     torch.manual_seed(args.seed)
     model = load_checkpoint(args.checkpoint)
-    module, span = model.module.eval(), model.window
+    module, span = model.module.eval(), model.span
     with open_dataset(args.data) as ds:
         presses = None
         if args.split_file:

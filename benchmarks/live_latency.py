@@ -22,8 +22,8 @@ import sys
 
 import torch
 
-from beadsight.inference.runtimes import BackendError, openvino_supports_bf16
 from beadsight.checkpoint import load_checkpoint
+from beadsight.inference.runtimes import BackendError, openvino_supports_bf16
 from beadsight.live.bench import bench_live, random_model, simulated_frames
 
 CPU_TARGET = {"hz": 30.0, "p99_ms": 33.0}
@@ -63,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     frames, source = simulated_frames(model.image_size, min(args.frames, 300))
     options = {"threads": args.threads, "cache_dir": args.cache_dir}
     if not args.json:
-        print(f"model: {model.source} ({model.image_size} px, T={model.window}); frames: {source}")
+        print(
+            f"model: {model.source} ({model.image_size} px, frames={model.frames}, span={model.span}); frames: {source}"
+        )
         print(f"{'backend':16s} {'max Hz':>8s} {'p50 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} "
               f"{'@' + format(args.rate, 'g') + 'Hz':>8s} {'p99 ms':>8s} {'err %':>8s}  target")  # fmt: skip
     for name, precision, device in rows(args.compile):

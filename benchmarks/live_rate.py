@@ -32,17 +32,18 @@ import torch
 from beadsight.checkpoint import CheckpointMeta, PressureModel, load_checkpoint
 from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.live.sensor import LiveSensor
+from beadsight.live.settings import LiveSettings
 
-MODELS = {  # name -> (image size px, U-Net width, window)
+MODELS = {  # name -> (image size px, U-Net width, frames)
     "tiny": (64, 8, 15),
     "reference": (256, 16, 15),
 }
 
 
-def random_model(size: int, width: int, window: int) -> PressureModel:
+def random_model(size: int, width: int, frames: int) -> PressureModel:
     torch.manual_seed(0)
     meta = CheckpointMeta(
-        model=ModelConfig(window=window, width=width),
+        model=ModelConfig(frames=frames, width=width),
         geometry=SensorGeometry(image_size_px=size),
         pixel_mean=[120.0] * 3,
         pixel_std=[40.0] * 3,
@@ -79,7 +80,8 @@ def run(name: str, model: PressureModel, args: argparse.Namespace) -> dict:
         if recording.is_set():
             rows.append((time.monotonic(), update.latency_s, update.reading.latency_s))
 
-    sensor = LiveSensor(model, "sim", args.backend, args.precision, fps=args.fps)
+    settings = LiveSettings(backend=args.backend, precision=args.precision, source_fps=args.fps)
+    sensor = LiveSensor(model, "sim", settings)
     sensor.on_update(on_update)
     stop, threads, servers = threading.Event(), [], []
     sse_count, stream_count = [0], [0]

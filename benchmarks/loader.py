@@ -9,7 +9,7 @@ folder (default 20 presses x 150 frames of 256x256 textured frames), then measur
   reported separately); windows gathered by index arithmetic, labelled and D4-
   transformed on the device;
 * the training step (:func:`beadsight.train.step.optimizer_step`, reference model width
-  16, window 15) in fp32 and bf16 on batches from the loader,
+  16, 15 frames) in fp32 and bf16 on batches from the loader,
 
 and prints each loader's rate as a multiple of the training rate (target: >= 10x).
 
@@ -130,7 +130,7 @@ def main() -> None:
     p.add_argument("--presses", type=int, default=20)
     p.add_argument("--frames", type=int, default=150, help="frames per press")
     p.add_argument("--size", type=int, default=256, help="dataset image size (px)")
-    p.add_argument("--window", type=int, default=15)
+    p.add_argument("--frames", type=int, default=15, help="frames per window (stride 1)")
     p.add_argument("--width", type=int, default=16, help="U-Net width for the training rate")
     p.add_argument("--up-kernel", type=int, default=1)
     p.add_argument("--batch", type=int, default=8)
@@ -160,7 +160,7 @@ def main() -> None:
         return
     print(
         f"dataset: {result['frames']} frames {result['size']}x{result['size']}, "
-        f"{result['windows']} windows of {args.window}; device {device}, batch {args.batch}"
+        f"{result['windows']} windows of {args.frames} frames; device {device}, batch {args.batch}"
     )
     for name, rate in result["loader_windows_per_s"].items():
         ratios = ", ".join(f"{r:.0f}x {p}" for p, r in result["ratio_to_training"][name].items())
@@ -172,9 +172,9 @@ def main() -> None:
 
 def run(args, path: Path, device: torch.device) -> dict:
     with open_dataset(path) as ds:
-        ends = window_ends(ds.press_id, ds.valid, args.window)
+        ends = window_ends(ds.press_id, ds.valid, args.frames)
         labels = WindowLabels.from_dataset(ds, ends, ds.image_size)
-        mask = window_frame_mask(ends, args.window, len(ds))
+        mask = window_frame_mask(ends, args.frames, len(ds))
         t = time.perf_counter()
         store = DeviceFrames.load(ds, mask, ds.image_size, device, progress=False)
         sync(device)
@@ -183,11 +183,11 @@ def run(args, path: Path, device: torch.device) -> dict:
     args.size = size
     common = dict(device=device, shuffle=True, augment=True, seed=0)
     rates = {}
-    device_loader = WindowLoader(DeviceWindows(store, labels, args.window), args.batch, **common)
+    device_loader = WindowLoader(DeviceWindows(store, labels, args.frames), args.batch, **common)
     rates["device"] = loader_rate(device_loader, args.max_batches, device)
     for workers in args.workers:
         host = WindowLoader(
-            WindowDataset(path, labels, args.window), args.batch, num_workers=workers, **common
+            WindowDataset(path, labels, args.frames), args.batch, num_workers=workers, **common
         )
         rates[f"host/{workers} workers"] = loader_rate(host, args.max_batches, device)
     device_loader.set_epoch(0)

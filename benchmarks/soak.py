@@ -25,8 +25,8 @@ import time
 import numpy as np
 
 from beadsight.checkpoint import load_checkpoint
-from beadsight.live.bench import random_model, simulated_frames
 from beadsight.inference.predictor import PressurePredictor
+from beadsight.live.bench import random_model, simulated_frames
 
 MAX_RSS_GROWTH_MB = 50.0
 CREEP_LIMIT = 1.25  # later blocks' median p50 above this times the earlier blocks' is creep
@@ -65,8 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     else:
         model = random_model(image_size=args.image_size, width=args.width)
     frames, source = simulated_frames(model.image_size, SOURCE_FRAMES)
-    predictor = PressurePredictor(model, args.backend, args.precision,
-                                  backend_options={"threads": args.threads})  # fmt: skip
+    predictor = PressurePredictor.from_checkpoint(
+        model, args.backend, args.precision, threads=args.threads
+    )
     print(f"soak: {args.frames} frames, {predictor!r}, frames from {source}", flush=True)
     period = predictor.frame_period_s
     latencies: list[float] = []

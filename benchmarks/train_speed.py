@@ -9,7 +9,7 @@ Measures, on synthetic frames (the model's cost does not depend on content):
 
 Usage::
 
-    .venv/bin/python benchmarks/train_speed.py                 # CPU, 256 px, width 16, window 15
+    .venv/bin/python benchmarks/train_speed.py                 # CPU, 256 px, width 16, 15 frames
     .venv/bin/python benchmarks/train_speed.py --device cuda --batch 64
     .venv/bin/python benchmarks/train_speed.py --size 128 --json
 """
@@ -40,7 +40,7 @@ def sync(device: torch.device) -> None:
 def make_model(args, device: torch.device) -> PressureModel:
     torch.manual_seed(0)
     meta = CheckpointMeta(
-        model=ModelConfig(window=args.window, width=args.width, up_kernel=args.up_kernel),
+        model=ModelConfig(frames=args.frames, width=args.width, up_kernel=args.up_kernel),
         geometry=SensorGeometry(image_size_px=args.size),
         pixel_mean=[120.0] * 3,
         pixel_std=[40.0] * 3,
@@ -52,7 +52,7 @@ def make_model(args, device: torch.device) -> PressureModel:
 def make_batch(args, batch: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(0)
     frames = torch.randint(
-        0, 256, (batch, args.window, args.size, args.size, 3), generator=g, dtype=torch.uint8
+        0, 256, (batch, args.frames, args.size, args.size, 3), generator=g, dtype=torch.uint8
     )
     rng = np.random.default_rng(0)
     targets = label_maps(
@@ -119,7 +119,7 @@ def main() -> None:
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     p.add_argument("--size", type=int, default=256, help="image size in px")
     p.add_argument("--width", type=int, default=16)
-    p.add_argument("--window", type=int, default=15)
+    p.add_argument("--frames", type=int, default=15, help="T, frames the network sees")
     p.add_argument("--up-kernel", type=int, default=1)
     p.add_argument("--batch", type=int, default=8, help="training batch")
     p.add_argument("--steps", type=int, default=3, help="timed training steps per precision")
@@ -139,7 +139,7 @@ def main() -> None:
         "torch_threads": torch.get_num_threads(),
         "size": args.size,
         "width": args.width,
-        "window": args.window,
+        "frames": args.frames,
         "batch": args.batch,
         "train_samples_per_s": {},
         "inference_latency_batch1": {},
@@ -154,7 +154,7 @@ def main() -> None:
         return
     print(
         f"device {result['device']} ({result['torch_threads']} torch threads), "
-        f"{args.size}x{args.size}, width {args.width}, window {args.window}"
+        f"{args.size}x{args.size}, width {args.width}, frames {args.frames}"
     )
     for precision, rate in result["train_samples_per_s"].items():
         lat = result["inference_latency_batch1"][precision]

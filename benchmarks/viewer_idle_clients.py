@@ -31,7 +31,7 @@ REQUEST = b"GET /events HTTP/1.1\r\nHost: 127.0.0.1:%d\r\nAccept: text/event-str
 
 def tiny_model() -> PressureModel:
     """The 64 px, width-8 model of the live tests, random weights (same cost as trained)."""
-    return random_model(image_size=64, window=15, width=8)
+    return random_model(image_size=64, frames=15, width=8)
 
 
 def cpu_model() -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 from pathlib import Path
 
@@ -85,16 +86,38 @@ def make_dataset(tmp_path: Path):
 
 @pytest.fixture
 def tiny_model() -> PressureModel:
-    """An untrained width-8, window-15 model for 64x64 frames."""
+    """An untrained width-8, 15-frame model for 64x64 frames."""
     torch.manual_seed(0)
     meta = CheckpointMeta(
-        model=ModelConfig(window=15, width=8),
+        model=ModelConfig(frames=15, width=8),
         geometry=TINY,
         pixel_mean=[120.0, 120.0, 120.0],
         pixel_std=[40.0, 40.0, 40.0],
         output_scale_kpa=10.0,
     )
     return PressureModel.create(meta)
+
+
+@pytest.fixture(scope="session")
+def probe_model() -> PressureModel:
+    """An untrained width-8, 15-frame model for 64x64 frames (output scale 10 kPa), shared by
+    a session: inference tests must not change it."""
+    torch.manual_seed(0)
+    meta = CheckpointMeta(
+        model=ModelConfig(frames=15, width=8), geometry=TINY,
+        pixel_mean=[120.0] * 3, pixel_std=[40.0] * 3, output_scale_kpa=10.0,
+    )  # fmt: skip
+    return PressureModel.create(meta)
+
+
+@pytest.fixture(scope="session")
+def strided_model(probe_model) -> PressureModel:
+    """probe_model's weights, seeing every 3rd frame of a 43-frame window."""
+    model = PressureModel.create(
+        dataclasses.replace(probe_model.meta, model=ModelConfig(frames=15, frame_stride=3, width=8))
+    )
+    model.module.load_state_dict(probe_model.module.state_dict())
+    return model
 
 
 @pytest.fixture

@@ -23,16 +23,19 @@ from beadsight.devices import (
     DeviceTimeoutError,
 )
 from beadsight.devices.base import DeviceContext, Frame
+from beadsight.live.settings import LiveSettings
 
 TINY = SensorGeometry(image_size_px=64)
-WINDOW = 15
-BACKEND = {"backend": "torch", "precision": "fp32"}  # fast to build; "auto" times candidates
+SPAN = 15  # frames per window of tiny_model() (15 frames, stride 1)
+WINDOW = SPAN  # its name before "frames" and "span" were told apart
+TORCH = LiveSettings(backend="torch", precision="fp32")  # fast to build; "auto" times candidates
+BACKEND = {"settings": TORCH}
 
 
-def tiny_model(window: int = WINDOW, seed: int = 0, scale_kpa: float = 10.0) -> PressureModel:
+def tiny_model(frames: int = SPAN, seed: int = 0, scale_kpa: float = 10.0) -> PressureModel:
     torch.manual_seed(seed)
     meta = CheckpointMeta(
-        model=ModelConfig(window=window, width=8),
+        model=ModelConfig(frames=frames, width=8),
         geometry=TINY,
         pixel_mean=[120.0] * 3,
         pixel_std=[40.0] * 3,

@@ -40,7 +40,7 @@ def reference_training_dict(net: UNet, image_size: int) -> dict:
         "lr": 1e-4,
         "weight_decay": 1e-4,
         "dropout_prob": 0.2,
-        "window_size": net.config.window,
+        "window_size": net.config.frames,
         "batch_size": 64,
         "noise_std": 0.05,
     }
@@ -60,7 +60,7 @@ def reference_pipeline(net, ref, frames_rgb):
 @pytest.mark.parametrize("up_kernel", [1, 3])
 def test_reference_checkpoint_matches_reference_pipeline(tmp_path, up_kernel):
     torch.manual_seed(0)
-    net = UNet(ModelConfig(window=15, width=8, up_kernel=up_kernel))
+    net = UNet(ModelConfig(frames=15, width=8, up_kernel=up_kernel))
     # Push the weights away from init so the output is not ~zero.
     with torch.no_grad():
         net.pred.bias.fill_(0.3)
@@ -68,7 +68,7 @@ def test_reference_checkpoint_matches_reference_pipeline(tmp_path, up_kernel):
     torch.save(ref, tmp_path / "ref.pt")
     model = load_checkpoint(tmp_path / "ref.pt")
     assert model.meta.channel_order == "BGR"
-    assert model.meta.model == ModelConfig(window=15, width=8, up_kernel=up_kernel, dropout=0.2)
+    assert model.meta.model == ModelConfig(frames=15, width=8, up_kernel=up_kernel, dropout=0.2)
     assert model.image_size == 64 and model.meta.output_scale_kpa == pytest.approx(1.8734)
     frames = np.random.default_rng(0).integers(0, 256, (15, 64, 64, 3), dtype=np.uint8)
     expected = reference_pipeline(net, ref, frames)
@@ -85,7 +85,7 @@ def test_reference_size_model_loads(tmp_path):
     assert sum(p.numel() for p in net.parameters()) == 504_449
     torch.save(reference_training_dict(net, 256), tmp_path / "ref.pt")
     model = load_checkpoint(tmp_path / "ref.pt")
-    assert model.window == 15 and model.image_size == 256
+    assert model.frames == model.span == 15 and model.image_size == 256
     assert len(model.module.net.state_dict()) == 42
     summary = checkpoint_summary(tmp_path / "ref.pt")
     assert (summary["format"], summary["parameters"], summary["epoch"]) == ("reference", 504_449, 7)
@@ -148,10 +148,11 @@ def test_bad_checkpoints_have_clear_errors(tmp_path, tiny_model):
 @pytest.mark.parametrize(
     "frames, message",
     [
-        (np.zeros((15, 64, 64), np.uint8), r"expected \(T, H, W, 3\)"),
-        (np.zeros((15, 64, 64, 4), np.uint8), r"expected \(T, H, W, 3\)"),
+        (np.zeros((15, 64, 64), np.uint8), r"expected \(span, H, W, 3\)"),
+        (np.zeros((15, 64, 64, 4), np.uint8), r"expected \(span, H, W, 3\)"),
         (np.zeros((15, 64, 64, 3), np.float32), "expected dtype uint8"),
-        (np.zeros((14, 64, 64, 3), np.uint8), "window of 14 frames.*expects window=15"),
+        (np.zeros((14, 64, 64, 3), np.uint8),
+         r"window of 14 frames.*expects span=15 \(frames=15, frame_stride=1\)"),
         (np.zeros((15, 32, 32, 3), np.uint8), "32x32 px.*expects image_size=64x64"),
     ],
 )

@@ -17,7 +17,7 @@ import warnings
 REMOVED_IN = "0.3"
 
 MOVED_MODULES = {
-    "beadsight.backends": "beadsight.inference.runtimes",
+    "beadsight.backends": "beadsight.inference.legacy_backends",
     "beadsight.export": "beadsight.inference.export",
     "beadsight.predictor": "beadsight.inference.predictor",
     "beadsight.live_sources": "beadsight.live.sources",
@@ -37,12 +37,22 @@ MOVED_MODULES = {
 }
 
 
-def deprecated(old: str, new: str) -> None:
+def deprecated(old: str, new: str, stacklevel: int = 3) -> None:
     warnings.warn(
         f"{old} is deprecated and goes away in beadsight {REMOVED_IN}; use {new}",
         DeprecationWarning,
-        stacklevel=3,
+        stacklevel=stacklevel,
     )
+
+
+def renamed_attribute(owner: str, old: str, new: str) -> property:
+    """A read-only property ``old`` that warns and returns attribute ``new``."""
+
+    def get(self):
+        deprecated(f"{owner}.{old}", f"{owner}.{new}")
+        return getattr(self, new)
+
+    return property(get, doc=f"Deprecated: :attr:`{new}`.")
 
 
 class MovedModuleFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):

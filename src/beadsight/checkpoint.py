@@ -5,13 +5,16 @@ Python values (it loads with ``weights_only=True``):
 
 ``{"beadsight": <JSON metadata str>, "state_dict": <UNet state_dict>, ...training state}``
 
-The metadata carries the model config, window, channel order, normalisation,
-output scale, sensor geometry, units and provenance, so the file alone rebuilds a
-working predictor. Reference checkpoints (pickled training dicts with numpy
-arrays) are read with ``weights_only=True``; numpy arrays are built only by the
-checked stand-ins of :mod:`beadsight.safe_numpy` (plain numeric and bool dtypes),
-and anything else a pickle asks for is refused before it can run. Whatever the
-format, :func:`load_checkpoint` refuses non-finite weights and statistics, a zero
+The metadata carries the model config (``frames`` T, ``frame_stride``, width, ...),
+channel order, normalisation, output scale, sensor geometry, units and provenance,
+so the file alone rebuilds a working predictor. Format version 2 names the frame
+count ``frames``; version 1 files (``window``) load unchanged.
+
+Reference checkpoints (pickled training dicts with numpy arrays) are read with
+``weights_only=True``; numpy arrays are built only by the checked stand-ins of
+:mod:`beadsight.safe_numpy` (plain numeric and bool dtypes), and anything else a
+pickle asks for is refused before it can run. Whatever the format,
+:func:`load_checkpoint` refuses non-finite weights and statistics, a zero
 ``pixel_std``, a non-positive output scale and metadata that does not fit the
 weights, before it builds the model.
 """
@@ -29,6 +32,7 @@ import numpy as np
 import torch
 
 from beadsight import safe_numpy
+from beadsight._compat import renamed_attribute
 from beadsight.config import REFERENCE_G_TO_N, ModelConfig, SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.files import atomic_write_bytes
@@ -36,7 +40,7 @@ from beadsight.geometry import PA_PER_KPA
 from beadsight.model import FramesToPressure, UNet, infer_model_config
 
 FORMAT = "beadsight-checkpoint"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: model "window" renamed "frames" (version 1 files still load)
 SHIPPED_MODEL = "sim_model.pt"  # the simulated-sensor model, in the package's assets folder
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
 
@@ -96,7 +100,7 @@ class CheckpointMeta:
                     f"this beadsight supports ({FORMAT_VERSION}); upgrade beadsight"
                 )
             return cls(
-                model=ModelConfig.from_dict(d["model"]),
+                model=ModelConfig.from_dict(ModelConfig.upgrade_keys(d["model"])),
                 geometry=SensorGeometry.from_dict(d["geometry"]),
                 pixel_mean=_floats(d["pixel_mean"], source, "pixel_mean"),
                 pixel_std=_floats(d["pixel_std"], source, "pixel_std"),
@@ -130,9 +134,16 @@ class PressureModel:
         return cls(_build_module(meta), meta)
 
     @property
-    def window(self) -> int:
-        """Frames in one input window (the model config's span)."""
+    def frames(self) -> int:
+        """T: frames the network sees."""
+        return self.meta.model.frames
+
+    @property
+    def span(self) -> int:
+        """Consecutive frames one input window covers: ``(frames - 1) * frame_stride + 1``."""
         return self.meta.model.span
+
+    window = renamed_attribute("PressureModel", "window", "span")
 
     @property
     def image_size(self) -> int:
@@ -155,15 +166,17 @@ class PressureModel:
         shape = getattr(frames, "shape", None)
         if shape is None or len(shape) not in (4, 5) or shape[-1] != 3:
             raise ValueError(
-                f"{what}: expected (T, H, W, 3) or (B, T, H, W, 3) RGB frames, got shape {shape}"
+                f"{what}: expected (span, H, W, 3) or (B, span, H, W, 3) RGB frames, got shape "
+                f"{shape}"
             )
         if frames.dtype != np.uint8:
             raise ValueError(f"{what}: expected dtype uint8 (0..255), got {frames.dtype}")
         t, h, w = shape[-4], shape[-3], shape[-2]
-        if t != self.window:
+        if t != self.span:
             raise ValueError(
                 f"{what}: window of {t} frames, but the checkpoint {self.source} expects "
-                f"window={self.window}"
+                f"span={self.span} (frames={self.frames}, frame_stride="
+                f"{self.meta.model.frame_stride})"
             )
         if (h, w) != (self.image_size, self.image_size):
             raise ValueError(
@@ -173,7 +186,7 @@ class PressureModel:
 
     @torch.inference_mode()
     def predict(self, frames: np.ndarray, batch_size: int = 16) -> np.ndarray:
-        """frames: (T, H, W, 3) or (B, T, H, W, 3) uint8 RGB, oldest first.
+        """frames: (span, H, W, 3) or (B, span, H, W, 3) uint8 RGB, oldest first.
 
         returns: (H, W) or (B, H, W) float32 kPa.
         """
@@ -340,10 +353,10 @@ def _reference_meta(obj: dict[str, Any], path: Path) -> tuple[CheckpointMeta, di
         model = infer_model_config(state, dropout=dropout)
     except (ValueError, IndexError) as e:
         raise CheckpointError(f"{path}: model_state_dict: {e}") from None
-    if "window_size" in obj and _number(obj["window_size"], path, "window_size") != model.window:
+    if "window_size" in obj and _number(obj["window_size"], path, "window_size") != model.frames:
         raise CheckpointError(
             f"{path}: window_size is {obj['window_size']} but the weights take "
-            f"{model.window} frames"
+            f"{model.frames} frames"
         )
     info = obj.get("data_loader_info") or {}
     if not isinstance(info, dict):

@@ -2,8 +2,10 @@
 
 ``UNet`` is the reference network; its parameter names match the reference
 state_dicts (``C1.layer.0.weight`` ... ``pred.bias``). ``FramesToPressure`` adds
-the input normalisation and output scale as buffers, so a single module maps
-``(B, T, H, W, 3)`` uint8 RGB frames to ``(B, H, W)`` kPa and exports as one graph.
+the input handling (which frames of a window the network sees, normalisation) and the
+output scale, so a single module maps ``(B, span, H, W, 3)`` uint8 RGB frames to
+``(B, H, W)`` kPa and exports as one graph. It is the only place that input handling
+is written: every runtime and training step goes through its methods.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from beadsight._compat import renamed_attribute
 from beadsight.config import ModelConfig
 
 
@@ -69,7 +72,7 @@ class UNet(nn.Module):
         super().__init__()
         self.config = config
         w, p = config.width, config.dropout
-        self.C1 = ConvBlock(3 * config.window, w, p)
+        self.C1 = ConvBlock(3 * config.frames, w, p)
         self.D1 = DownBlock(w)
         self.C2 = ConvBlock(w, 2 * w, p)
         self.D2 = DownBlock(2 * w)
@@ -96,7 +99,9 @@ class UNet(nn.Module):
 
 
 def infer_model_config(state_dict: dict[str, torch.Tensor], dropout: float = 0.2) -> ModelConfig:
-    """Read window, width and up-conv kernel from a U-Net state_dict's tensor shapes."""
+    """Read frames (T), width and up-conv kernel from a U-Net state_dict's tensor shapes.
+
+    The frame stride is not in the weights: it is 1 here (reference checkpoints)."""
     try:
         first = state_dict["C1.layer.0.weight"]  # (w, 3T, 3, 3)
         up = state_dict["U2.Up.weight"]  # (4w, 8w, k, k)
@@ -105,21 +110,26 @@ def infer_model_config(state_dict: dict[str, torch.Tensor], dropout: float = 0.2
     if first.shape[1] % 3:
         raise ValueError(f"C1.layer.0.weight has {first.shape[1]} input channels; expected 3*T")
     return ModelConfig(
-        window=first.shape[1] // 3, width=first.shape[0], up_kernel=up.shape[-1], dropout=dropout
+        frames=first.shape[1] // 3, width=first.shape[0], up_kernel=up.shape[-1], dropout=dropout
     )
 
 
 class FramesToPressure(nn.Module):
-    """uint8 RGB frame windows -> kPa maps, with normalisation inside the module.
+    """uint8 RGB frame windows -> kPa maps, with the input handling inside the module.
 
-    frames: (B, T, H, W, 3) uint8 RGB, oldest frame first, T = ``window`` (the
-    config's span: with ``frame_stride`` s > 1 the network sees every s-th frame,
-    newest included).
+    frames: (B, span, H, W, 3) uint8 RGB, oldest frame first, span =
+    ``config.span``: the network sees ``config.frames`` of them, every
+    ``frame_stride``-th counted back from the newest (:meth:`seen`).
     returns: (B, H, W) float32 kPa.
 
     ``channel_order`` is the order the network was trained on ("RGB" or "BGR");
     ``pixel_mean``/``pixel_std`` are per-channel statistics in that order, in
     0..255 units; ``output_scale_kpa`` converts the network's output to kPa.
+
+    The steps, for runtimes that keep normalised frames between calls::
+
+        x = module.normalize_frames(frames)  # each frame once: (B, N, 3, H, W)
+        y = module.pressure(module.stack(x))  # a window of span frames -> (B, H, W) kPa
     """
 
     def __init__(
@@ -142,20 +152,41 @@ class FramesToPressure(nn.Module):
         self.register_buffer("output_scale_kpa", torch.tensor(float(output_scale_kpa)))
 
     @property
-    def window(self) -> int:
-        """Frames in one input window (oldest first)."""
+    def frames(self) -> int:
+        """T: frames the network sees."""
+        return self.net.config.frames
+
+    @property
+    def span(self) -> int:
+        """Consecutive frames one input window covers (oldest first)."""
         return self.net.config.span
 
-    def normalize(self, frames: torch.Tensor) -> torch.Tensor:
-        """(B, span, H, W, 3) uint8 RGB -> (B, 3T, H, W) float32, channel k = 3t + c
-        for the T = ``config.window`` frames the network sees."""
+    window = renamed_attribute("FramesToPressure", "window", "span")
+
+    def seen(self, window: torch.Tensor) -> torch.Tensor:
+        """(B, span, ...) -> (B, T, ...): the frames the network sees, the newest included."""
         stride = self.net.config.frame_stride
-        if stride > 1:
-            frames = frames[:, ::stride]  # (B, T, H, W, 3), the newest frame included
-        b, t, h, w, _ = frames.shape
+        return window[:, ::stride] if stride > 1 else window
+
+    def normalize_frames(self, frames: torch.Tensor) -> torch.Tensor:
+        """(B, N, H, W, 3) uint8 RGB -> (B, N, 3, H, W) float32, channels in the trained
+        order, ``(x - pixel_mean) / pixel_std``."""
         x = frames.index_select(-1, self.channel_perm).to(torch.float32)
-        x = (x - self.pixel_mean) / self.pixel_std  # (B, T, H, W, 3)
-        return x.permute(0, 1, 4, 2, 3).reshape(b, t * 3, h, w)
+        x = (x - self.pixel_mean) / self.pixel_std  # (B, N, H, W, 3)
+        return x.permute(0, 1, 4, 2, 3)
+
+    def stack(self, normalized: torch.Tensor) -> torch.Tensor:
+        """(B, span, 3, H, W) normalised frames -> (B, 3T, H, W) network input,
+        channel k = 3t + c over the frames the network sees."""
+        return self.seen(normalized).flatten(1, 2)
+
+    def normalize(self, frames: torch.Tensor) -> torch.Tensor:
+        """(B, span, H, W, 3) uint8 RGB -> (B, 3T, H, W) float32 network input."""
+        return self.normalize_frames(self.seen(frames)).flatten(1, 2)  # only the T seen
+
+    def pressure(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3T, H, W) network input -> (B, H, W) kPa."""
+        return self.net(x)[:, 0] * self.output_scale_kpa
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
-        return self.net(self.normalize(frames))[:, 0] * self.output_scale_kpa  # (B, H, W)
+        return self.pressure(self.normalize(frames))  # (B, H, W)

@@ -22,7 +22,8 @@ from beadsight.data.dataset import open_dataset
 from beadsight.data.reference_file import export_reference
 from beadsight.evaluation.evaluate import EvaluationError, evaluate
 from beadsight.model import UNet
-from beadsight.train.trainer import TrainConfig, train
+from beadsight.train.config import TrainConfig
+from beadsight.train.trainer import train
 
 SPAN = 15
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -99,7 +100,7 @@ def reference_setup(make_dataset, tmp_path):
     with open_dataset(ref_file) as ds:
         press_frames = [np.flatnonzero((ds.press_id == p) & ds.contact) for p in range(6)]
     torch.manual_seed(0)
-    net = UNet(ModelConfig(window=SPAN, width=8))
+    net = UNet(ModelConfig(frames=SPAN, width=8))
     ckpt = reference_training_dict(net, 64)
     ckpt["train_indices"] = np.concatenate([press_frames[p] for p in (0, 2, 3, 5)]).tolist()
     ckpt["test_indices"] = np.concatenate([press_frames[p] for p in (1, 4)]).tolist()

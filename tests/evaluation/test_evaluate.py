@@ -251,7 +251,7 @@ def test_resize_to_checkpoint_size(make_dataset, tmp_path):
     """A checkpoint trained at 32 px (train --image-size 32) on 64 px data, with --resize."""
     torch.manual_seed(0)
     meta = CheckpointMeta(
-        model=ModelConfig(window=15, width=8), geometry=SensorGeometry(image_size_px=32),
+        model=ModelConfig(frames=15, width=8), geometry=SensorGeometry(image_size_px=32),
         pixel_mean=[120.0] * 3, pixel_std=[40.0] * 3, output_scale_kpa=10.0,
     )  # fmt: skip
     model = PressureModel.create(meta)

@@ -77,7 +77,7 @@ def test_predict_dataset(make_dataset, tiny_model, tmp_path):
         np.testing.assert_allclose(
             f["force_n"][()], total_force_n(maps.astype(np.float64), tiny_model.geometry)
         )
-        assert f.attrs["input_kind"] == "dataset" and f.attrs["window"] == 15
+        assert f.attrs["input_kind"] == "dataset" and f.attrs["span"] == f.attrs["frames"] == 15
     assert not list(tmp_path.glob("*.partial"))
 
 
@@ -103,10 +103,13 @@ def test_cli_predict_video(tiny_model, tmp_path, capsys):
             np.testing.assert_allclose(f["pressure_kpa"][end], expected, rtol=1e-5, atol=1e-5)
 
 
-def test_video_needs_preprocessing(tiny_model, tmp_path):
+@pytest.mark.parametrize("preprocess", ["none", "auto"])
+def test_video_needs_preprocessing(tiny_model, tmp_path, preprocess):
+    """Frames neither at the model's size nor from the reference camera (100x80, width x
+    height) are refused unless a preprocessing is named: the rule live sensing follows."""
     video = write_video(tmp_path / "raw.avi", textured_frames(16, 80, 100))
-    with pytest.raises(PredictionError, match="80x100 px.*image_size=64x64"):
-        predict_recording(tiny_model, video, tmp_path / "o.h5", preprocess="none",
+    with pytest.raises(PredictionError, match="raw.avi delivers 100x80 frames.*64x64"):
+        predict_recording(tiny_model, video, tmp_path / "o.h5", preprocess=preprocess,
                           device="cpu", progress=False)  # fmt: skip
     assert not (tmp_path / "o.h5").exists() and not list(tmp_path.glob("*.partial"))
 
@@ -116,7 +119,8 @@ def test_video_reference_preprocessing(tiny_model, tmp_path):
 
     n = 16
     video = write_video(tmp_path / "raw.avi", textured_frames(n, 80, 100))
-    out = predict_recording(tiny_model, video, tmp_path / "o.h5", device="cpu", progress=False)
+    out = predict_recording(tiny_model, video, tmp_path / "o.h5", preprocess="reference",
+                            device="cpu", progress=False)  # fmt: skip
     pre = Preprocessor.reference(input_hw=(80, 100), output_size=64)
     cap = cv2.VideoCapture(str(video))
     frames = np.stack([pre(cap.read()[1]) for _ in range(n)])

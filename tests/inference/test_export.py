@@ -25,7 +25,7 @@ from beadsight.inference.export import (
     model_fingerprint,
     read_exported_metadata,
 )
-from beadsight.inference.runtimes import probe_window
+from beadsight.inference.parity import probe_window
 
 onnx = pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
@@ -73,7 +73,7 @@ def test_exported_onnx_runs_without_beadsight(tiny_model, tmp_path, frame_stride
         import sys
         assert "beadsight" not in sys.modules, "beadsight was imported"
         expected = np.load({str(tmp_path / "expected.npy")!r})
-        assert frames.shape[1] == t == {model.window}, (frames.shape, t)
+        assert frames.shape[1] == t == {model.span}, (frames.shape, t)
         assert pressure_kpa.shape == expected.shape == (s, s), pressure_kpa.shape
         print(float(np.abs(pressure_kpa - expected).max()))
     """)
@@ -110,7 +110,7 @@ def test_openvino_export_parity_and_metadata(tiny_model, tmp_path, precision):
     meta = read_exported_metadata(report.path)
     assert meta[FINGERPRINT_KEY] == model_fingerprint(tiny_model)
     assert meta["beadsight_precision"] == precision
-    predictor = PressurePredictor(tiny_model, exported_model=report.path)
+    predictor = PressurePredictor.from_checkpoint(tiny_model, exported_model=report.path)
     assert predictor.backend.describe() == f"openvino/{precision}"
 
 
@@ -119,7 +119,7 @@ def test_mismatched_exported_model_is_refused(tiny_model, tmp_path):
     torch.manual_seed(99)
     other = PressureModel.create(tiny_model.meta)  # same description, other weights
     with pytest.raises(ExportError, match=r"m\.onnx was exported from a different checkpoint"):
-        PressurePredictor(other, backend="onnx", exported_model=path)
+        PressurePredictor.from_checkpoint(other, backend="onnx", exported_model=path)
 
 
 def test_file_without_metadata_is_refused(tiny_model, tmp_path):
@@ -128,7 +128,7 @@ def test_file_without_metadata_is_refused(tiny_model, tmp_path):
     del proto.metadata_props[:]
     onnx.save(proto, path)
     with pytest.raises(ExportError, match=r"m\.onnx: no beadsight metadata"):
-        PressurePredictor(tiny_model, exported_model=path)
+        PressurePredictor.from_checkpoint(tiny_model, exported_model=path)
 
 
 def test_bad_export_requests(tiny_model, tmp_path):

@@ -7,9 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from beadsight import PressurePredictor, Reading
+from beadsight import PressurePredictor, PressureReading
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig
+from beadsight.evaluation.metrics import otsu_thresholds
 from beadsight.geometry import (
     centre_of_pressure_mm,
     contact_area_mm2,
@@ -17,7 +18,7 @@ from beadsight.geometry import (
     disk_pressure_kpa,
     total_force_n,
 )
-from beadsight.inference.predictor import DEFAULT_FPS, otsu_threshold
+from beadsight.inference.predictor import DEFAULT_FPS
 from beadsight.inference.runtimes import Backend, TorchBackend
 
 FPS = DEFAULT_FPS
@@ -30,11 +31,11 @@ def _frames(n: int, size: int = 64, seed: int = 0) -> np.ndarray:
 
 
 def _predictor(model: PressureModel, **kwargs) -> PressurePredictor:
-    return PressurePredictor(model, backend="torch", precision="fp32", **kwargs)
+    return PressurePredictor.from_checkpoint(model, "torch", "fp32", **kwargs)
 
 
 class FixedMapBackend(Backend):
-    """A backend returning a known map, to check the reductions of a Reading exactly."""
+    """A backend returning a known map, to check the reductions of a reading exactly."""
 
     name = "fixed"
 
@@ -55,7 +56,7 @@ def test_none_until_window_full_then_matches_model_predict(tiny_model):
         assert not predictor.ready
     for k in range(T - 1, T + 5):
         reading = predictor.update(frames[k], k / FPS)
-        assert isinstance(reading, Reading)
+        assert isinstance(reading, PressureReading)
         expected = tiny_model.predict(frames[k - T + 1 : k + 1])  # oldest first
         np.testing.assert_allclose(reading.pressure_kpa, expected, atol=1e-5, rtol=0)
         np.testing.assert_array_equal(predictor.window_frames(), frames[k - T + 1 : k + 1])
@@ -258,13 +259,13 @@ def test_otsu_contact_mask_splits_two_levels(tiny_model):
     for k, frame in enumerate(_frames(T)):
         reading = predictor.update(frame, k / FPS)
     np.testing.assert_array_equal(reading.contact_mask, pressure == 50.0)
-    assert 5.0 < otsu_threshold(np.array([5.0] * 100 + [50.0] * 100)) <= 50.0
+    assert 5.0 < otsu_thresholds(np.array([[5.0] * 100 + [50.0] * 100]))[0] <= 50.0
 
 
 # --- input validation --------------------------------------------------------------
 def test_frame_of_wrong_resolution_names_both_sizes(tiny_model):
     predictor = _predictor(tiny_model)
-    with pytest.raises(ValueError, match=r"480x640.*64x64"):
+    with pytest.raises(ValueError, match=r"640x480 px.*64x64"):  # width x height
         predictor.update(np.zeros((480, 640, 3), np.uint8), 0.0)
 
 
@@ -286,7 +287,7 @@ def test_bad_frames_are_refused(tiny_model, frame, message):
 
 def test_model_from_checkpoint_path(tiny_model, tmp_path):
     path = tiny_model.save(tmp_path / "tiny.pt")
-    predictor = PressurePredictor(path, backend="torch")
+    predictor = PressurePredictor.from_checkpoint(path, backend="torch")
     assert isinstance(predictor.backend, TorchBackend)
     assert predictor.model.source == str(path)
     frames = _frames(T)
@@ -295,9 +296,9 @@ def test_model_from_checkpoint_path(tiny_model, tmp_path):
     np.testing.assert_allclose(reading.pressure_kpa, tiny_model.predict(frames), atol=1e-5)
 
 
-def test_predictor_with_other_window(tiny_model):
+def test_predictor_with_other_frame_count(tiny_model):
     meta = CheckpointMeta(
-        model=ModelConfig(window=4, width=8), geometry=tiny_model.geometry,
+        model=ModelConfig(frames=4, width=8), geometry=tiny_model.geometry,
         pixel_mean=[100.0] * 3, pixel_std=[50.0] * 3, channel_order="BGR",
         output_scale_kpa=3.0,
     )  # fmt: skip
@@ -311,7 +312,7 @@ def test_predictor_with_other_window(tiny_model):
 
 def test_predictor_with_frame_stride(tiny_model):
     meta = dataclasses.replace(
-        tiny_model.meta, model=ModelConfig(window=4, frame_stride=2, width=8)
+        tiny_model.meta, model=ModelConfig(frames=4, frame_stride=2, width=8)
     )
     model = PressureModel.create(meta)
     predictor = _predictor(model)
@@ -320,3 +321,47 @@ def test_predictor_with_frame_stride(tiny_model):
     assert [r is None for r in readings] == [True] * 6 + [False] * 3  # span 7
     np.testing.assert_array_equal(predictor.window_frames(), frames[2:])
     np.testing.assert_allclose(readings[-1].pressure_kpa, model.predict(frames[2:]), atol=1e-5)
+
+
+# --- construction ------------------------------------------------------------------
+def test_from_checkpoint_equals_the_constructor(tiny_model, tmp_path):
+    from beadsight.checkpoint import load_checkpoint
+    from beadsight.inference.predictor import PredictorSettings
+
+    path = tiny_model.save(tmp_path / "tiny.pt")
+    loaded = PressurePredictor.from_checkpoint(path, "torch", "fp32", on_gap="hold",
+                                               max_gap_frames=1)  # fmt: skip
+    model = load_checkpoint(path)
+    settings = PredictorSettings(on_gap="hold", max_gap_frames=1)
+    built = PressurePredictor(model, TorchBackend(model), settings=settings)
+    assert loaded.settings == built.settings == settings
+    frames = _frames(T + 8)
+    times = np.arange(T + 8) / FPS
+    times[T + 2 :] += 4 / FPS  # a gap the hold policy fills
+    for frame, t in zip(frames, times, strict=True):
+        a, b = loaded.update(frame, t), built.update(frame, t)
+        assert (a is None) == (b is None)
+        if a is not None:
+            for field in dataclasses.fields(PressureReading):
+                if field.name != "latency_s":
+                    np.testing.assert_array_equal(getattr(a, field.name), getattr(b, field.name))
+    assert loaded.dropped_frames == built.dropped_frames == 4
+
+
+def test_constructor_does_no_file_work(tiny_model, monkeypatch):
+    """PressurePredictor(model) neither loads nor probes: only from_checkpoint does."""
+    import beadsight.inference.predictor as predictor_module
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the constructor loaded or probed")
+
+    monkeypatch.setattr(predictor_module, "load_checkpoint", refuse)
+    monkeypatch.setattr(predictor_module, "create_backend", refuse)
+    predictor = PressurePredictor(tiny_model)
+    assert predictor.backend.describe() == "torch/fp32"
+    frames = _frames(T)
+    for k in range(T):
+        reading = predictor.update(frames[k], k / FPS)
+    np.testing.assert_allclose(reading.pressure_kpa, tiny_model.predict(frames), atol=1e-5)
+    with pytest.raises(AssertionError, match="loaded or probed"):
+        PressurePredictor.from_checkpoint(tiny_model)

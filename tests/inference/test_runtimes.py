@@ -1,33 +1,26 @@
-"""Inference backends agree with fp32 torch; auto picks one that does; mismatches are refused."""
+"""Inference runtimes agree with fp32 torch, also when streaming."""
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
-import json
 
 import numpy as np
 import pytest
 import torch
+from inference_helpers import T, stream
 
-from beadsight import PressurePredictor
 from beadsight.checkpoint import PressureModel
+from beadsight.inference.parity import PARITY_TOLERANCE, ParityError, check_parity, probe_window
+from beadsight.inference.predictor import PressurePredictor
 from beadsight.inference.runtimes import (
-    CHOICE_FILE,
-    PARITY_TOLERANCE,
     Backend,
     BackendUnavailableError,
     CudaGraphBackend,
-    ParityError,
     TorchBackend,
     build_backend,
-    check_parity,
-    create_backend,
-    probe_window,
-    select_backend,
 )
+from beadsight.inference.select import create_backend
 
-T = 15
 HAS_CUDA = torch.cuda.is_available()
 
 CPU_BACKENDS = [
@@ -48,30 +41,6 @@ def _build(model, name, precision, module, **kwargs) -> Backend:
         pytest.skip(str(e))
 
 
-def _stream(n: int, size: int = 64, seed: int = 1) -> np.ndarray:
-    return np.random.default_rng(seed).integers(0, 256, (n, size, size, 3), dtype=np.uint8)
-
-
-@pytest.fixture(scope="module")
-def probe_model() -> PressureModel:
-    from beadsight.checkpoint import CheckpointMeta
-    from beadsight.config import ModelConfig, SensorGeometry
-
-    torch.manual_seed(0)
-    meta = CheckpointMeta(
-        model=ModelConfig(window=T, width=8), geometry=SensorGeometry(image_size_px=64),
-        pixel_mean=[120.0] * 3, pixel_std=[40.0] * 3, output_scale_kpa=10.0,
-    )  # fmt: skip
-    return PressureModel.create(meta)
-
-
-def test_probe_window_has_a_real_peak(probe_model):
-    window = probe_window(probe_model)
-    assert window.shape == (1, T, 64, 64, 3) and window.dtype == np.uint8
-    assert probe_model.predict(window[0]).max() > PARITY_TOLERANCE.floor_kpa
-    np.testing.assert_array_equal(window, probe_window(probe_model))  # deterministic
-
-
 @pytest.mark.parametrize("name, precision, module", CPU_BACKENDS)
 def test_backend_agrees_with_torch(probe_model, name, precision, module):
     backend = _build(probe_model, name, precision, module)
@@ -89,7 +58,7 @@ def test_backend_agrees_with_torch(probe_model, name, precision, module):
             with pytest.raises(ParityError, match=f"{name}/bf16 disagrees with fp32 torch"):
                 create_backend(probe_model, name, precision, cache_dir=None)
     # a second window gives a different answer (the backend is not replaying a cache)
-    other = _stream(T, seed=7)[None]
+    other = stream(T, seed=7)[None]
     np.testing.assert_allclose(
         backend.run(other)[0], probe_model.predict(other[0]),
         atol=5 * PARITY_TOLERANCE.tolerance_kpa(parity.peak_kpa), rtol=0,
@@ -109,31 +78,20 @@ def test_compile_backend_agrees_and_is_cached(probe_model, tmp_path):
 def _incremental_matches_run(backend: Backend, model: PressureModel, frames: np.ndarray):
     """Stream frames through run_incremental (1 new frame per call, a jump of 3, a full
     refill, a stateless run in between) and compare each output with model.predict."""
-    t = model.window
+    t = model.span
     steps = [(k, 1) for k in range(t, t + 6)] + [(t + 8, 3), (t + 30, t), (t + 31, 1)]
     backend.run_incremental(frames[None, 0:t], t)
     for i, (end, new) in enumerate(steps):
         if i == 3:  # a stateless run in between must not disturb the stream
-            backend.run(_stream(t, seed=11)[None])
+            backend.run(stream(t, seed=11)[None])
         window = frames[None, end - t + 1 : end + 1]
         got = backend.run_incremental(np.ascontiguousarray(window), new)
         np.testing.assert_allclose(got[0], model.predict(window[0]), atol=1e-4, rtol=0)
 
 
-@pytest.fixture(scope="module")
-def strided_model(probe_model) -> PressureModel:
-    """probe_model's weights, seeing every 3rd frame of a 43-frame window."""
-    meta = dataclasses.replace(
-        probe_model.meta, model=dataclasses.replace(probe_model.meta.model, frame_stride=3)
-    )
-    model = PressureModel.create(meta)
-    model.module.load_state_dict(probe_model.module.state_dict())
-    return model
-
-
 def test_strided_model_sees_every_stride_th_frame(probe_model, strided_model):
-    frames = _stream(strided_model.window)
-    assert strided_model.window == 3 * (T - 1) + 1
+    frames = stream(strided_model.span)
+    assert strided_model.span == 3 * (T - 1) + 1
     np.testing.assert_allclose(
         strided_model.predict(frames), probe_model.predict(frames[::3]), atol=1e-6, rtol=0
     )
@@ -143,17 +101,17 @@ def test_strided_model_sees_every_stride_th_frame(probe_model, strided_model):
 
 
 def test_torch_incremental_normalisation_matches_stateless(probe_model, strided_model):
-    _incremental_matches_run(TorchBackend(probe_model), probe_model, _stream(T + 32))
-    w = strided_model.window
-    _incremental_matches_run(TorchBackend(strided_model), strided_model, _stream(w + 32))
+    _incremental_matches_run(TorchBackend(probe_model), probe_model, stream(T + 32))
+    w = strided_model.span
+    _incremental_matches_run(TorchBackend(strided_model), strided_model, stream(w + 32))
 
 
 def test_device_ring_logic_on_cpu(probe_model, strided_model):
     """The CUDA backend's device ring, run eagerly on the CPU."""
     backend = CudaGraphBackend(probe_model, "fp32", device="cpu", use_graphs=False)
-    _incremental_matches_run(backend, probe_model, _stream(T + 32))
+    _incremental_matches_run(backend, probe_model, stream(T + 32))
     strided = CudaGraphBackend(strided_model, "fp32", device="cpu", use_graphs=False)
-    _incremental_matches_run(strided, strided_model, _stream(strided_model.window + 32))
+    _incremental_matches_run(strided, strided_model, stream(strided_model.span + 32))
     np.testing.assert_allclose(
         backend.run(probe_window(probe_model))[0],
         probe_model.predict(probe_window(probe_model)[0]), atol=1e-5,
@@ -169,15 +127,15 @@ def test_cuda_graphs_agree_with_torch(probe_model, precision):
     parity = check_parity(backend, probe_model)
     assert parity.ok, str(parity)
     if precision == "fp32":
-        _incremental_matches_run(backend, probe_model, _stream(T + 32))
+        _incremental_matches_run(backend, probe_model, stream(T + 32))
     backend.close()
 
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
 def test_predictor_on_cuda_matches_cpu(probe_model):
-    predictor = PressurePredictor(probe_model, backend="cuda", precision="fp32")
-    frames = _stream(T + 5)
+    predictor = PressurePredictor.from_checkpoint(probe_model, "cuda", "fp32")
+    frames = stream(T + 5)
     for k, frame in enumerate(frames):
         reading = predictor.update(frame, k / 30.0)
     np.testing.assert_allclose(
@@ -192,54 +150,33 @@ def test_cuda_without_a_gpu_is_unavailable(probe_model):
         build_backend(probe_model, "cuda", "fp32")
 
 
-def test_auto_picks_a_backend_that_passes_parity(probe_model, tmp_path):
-    backend = select_backend(probe_model, cache_dir=tmp_path)
-    assert backend.parity.ok
-    assert check_parity(backend, probe_model).ok
-    usable = [c for c in backend.selection if c.seconds is not None]
-    assert (backend.name, backend.precision) in [(c.backend, c.precision) for c in usable]
-    for c in usable:  # bf16 only within half the bound, fp32 within the bound
-        assert c.err_pct <= (100 if c.precision == "fp32" else 50) * PARITY_TOLERANCE.fraction
-    fastest = min(usable, key=lambda c: c.seconds)
-    assert (fastest.backend, fastest.precision) == (backend.name, backend.precision)
-    choices = json.loads((tmp_path / CHOICE_FILE).read_text())
-    (choice,) = choices.values()
-    assert (choice["backend"], choice["precision"]) == (backend.name, backend.precision)
-    cached = select_backend(probe_model, cache_dir=tmp_path)  # from the cached decision
-    assert cached.describe() == backend.describe()
-
-
-def test_auto_with_fp32_only_considers_fp32(probe_model):
-    backend = create_backend(probe_model, "auto", "fp32", cache_dir=None)
-    assert backend.precision == "fp32"
-    assert all(c.precision == "fp32" for c in backend.selection)
-
-
-def test_named_backend_that_disagrees_is_refused(probe_model, tmp_path):
-    """An ONNX file whose metadata claims this checkpoint but holds other weights."""
-    pytest.importorskip("onnxruntime")
-    import onnx
-
-    from beadsight.inference.export import exported_metadata, write_onnx
-
-    torch.manual_seed(123)
-    impostor = PressureModel.create(probe_model.meta)
-    path = write_onnx(impostor, tmp_path / "impostor.onnx")
-    proto = onnx.load(str(path))
-    for entry in proto.metadata_props:  # forge the metadata
-        entry.value = exported_metadata(probe_model)[entry.key]
-    onnx.save(proto, str(path))
-    with pytest.raises(ParityError, match="disagrees with fp32 torch"):
-        PressurePredictor(probe_model, backend="onnx", exported_model=path)
-
-
-def test_bad_backend_arguments(probe_model):
-    with pytest.raises(ValueError, match="backend must be"):
-        create_backend(probe_model, "tensorrt", cache_dir=None)
-    with pytest.raises(ValueError, match="precision must be"):
-        create_backend(probe_model, "torch", "fp16", cache_dir=None)
-    with pytest.raises(BackendUnavailableError, match="bf16"):
-        build_backend(probe_model, "onnx", "bf16", cache_dir=None)
+def test_bad_backend_input(probe_model):
     backend = TorchBackend(probe_model)
     with pytest.raises(ValueError, match=r"window: expected \(1, 15, 64, 64, 3\) uint8"):
         backend.run(np.zeros((1, T, 32, 32, 3), np.uint8))
+
+
+def test_one_input_path(strided_model, monkeypatch):
+    """The streaming torch runtime and PressureModel.predict both take the frame stride, the
+    normalisation and the output scale from FramesToPressure: change one there and both
+    follow, and still agree."""
+    from beadsight.model import FramesToPressure
+
+    span = strided_model.span
+    frames = stream(span + 12, seed=4)
+
+    def stream_matches(backend: TorchBackend) -> list[np.ndarray]:
+        maps = []
+        for end in range(span - 1, len(frames)):
+            window = frames[end - span + 1 : end + 1]
+            got = backend.run_incremental(window[None], span if end == span - 1 else 1)[0]
+            np.testing.assert_allclose(got, strided_model.predict(window), atol=1e-5, rtol=0)
+            maps.append(got)
+        return maps
+
+    before = stream_matches(TorchBackend(strided_model))
+    # the network sees the frames newest first: a change made in one place only
+    monkeypatch.setattr(FramesToPressure, "seen", lambda self, w: w.flip(1)[:, ::3])
+    monkeypatch.setattr(strided_model.module, "output_scale_kpa", torch.tensor(20.0))
+    after = stream_matches(TorchBackend(strided_model))
+    assert all(np.abs(a - 2 * b).max() > 1e-3 for a, b in zip(after, before, strict=True))

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
     BACKEND,
     TINY,
+    TORCH,
     WINDOW,
     ScriptedSource,
     no_thread_leaks,
@@ -241,7 +243,7 @@ def test_record_presses_in_the_same_second_make_new_files(model, tmp_path):
     """Two Record presses within one second each get their own file; nothing is replaced."""
     starts = []
     with (
-        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,
         ViewerServer(sensor, port=0, record_dir=tmp_path) as viewer,
     ):
         wait_until(lambda: sensor.stats().readings >= 1, 30, "a reading")

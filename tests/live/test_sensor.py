@@ -8,6 +8,7 @@ import math
 import time
 import urllib.error
 import urllib.request
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
     BACKEND,
     TINY,
+    TORCH,
     WINDOW,
     ScriptedSource,
     StatusLog,
@@ -29,7 +31,9 @@ from beadsight.cli import main
 from beadsight.devices.virtual import PlaybackCamera
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
 from beadsight.live.readings import ReadingsFileError, open_readings
-from beadsight.live.sensor import LiveSensor, run_live
+from beadsight.live.run import run_live
+from beadsight.live.sensor import LiveSensor
+from beadsight.live.settings import LiveSettings
 from beadsight.live.sources import frame_converter
 from beadsight.live.viewer.server import ViewerServer
 from beadsight.preprocess import FrameSizeError, Preprocessor
@@ -189,20 +193,22 @@ def test_backend_that_refuses_the_checkpoint_is_refused_at_start(model, presses)
 
     frames, _ = presses
     source = ScriptedSource(frames)
-    sensor = LiveSensor(model, source, backend="no-such-backend")
     with pytest.raises(ValueError, match="no-such-backend"):
-        sensor.start()
+        LiveSensor(model, source, LiveSettings(backend="no-such-backend")).start()
     assert not source.opens  # refused before the source was opened
     if not __import__("torch").cuda.is_available():
+        sensor = LiveSensor(model, source, LiveSettings(backend="cuda"))
         with pytest.raises(BackendError, match="cuda"):
-            LiveSensor(model, ScriptedSource(frames), backend="cuda").start()
+            sensor.start()
+        assert not source.opens  # refused before the source was opened
 
 
 def test_unplugged_camera_is_reopened_with_exponential_backoff(model, presses):
     frames, _ = presses
     source = ScriptedSource(frames, disconnect_after=25, failed_reopens=2)
     log = StatusLog()
-    sensor = LiveSensor(model, source, reconnect_backoff_s=(0.05, 0.4), **BACKEND).open()
+    settings = replace(TORCH, reconnect_initial_s=0.05, reconnect_max_s=0.4)
+    sensor = LiveSensor(model, source, settings).open()
     sensor.add_listener(log)
     stream = sensor.readings()
     with sensor:
@@ -222,7 +228,7 @@ def test_stalled_source_shows_no_signal_then_recovers(model, presses):
     frames, _ = presses
     source = ScriptedSource(frames, stall_after=30)
     log = StatusLog()
-    with LiveSensor(model, source, no_signal_after_s=0.2, **BACKEND) as sensor:
+    with LiveSensor(model, source, replace(TORCH, no_signal_after_s=0.2)) as sensor:
         sensor.add_listener(log)
         wait_until(lambda: sensor.status.state == "no_signal", 10, "no_signal")
         assert "no frame from scripted" in sensor.status.message
@@ -240,7 +246,7 @@ def test_video_file_source_ends_or_loops(model, presses, tmp_path):
     assert sensor.status.state == "ended" and "press.avi" in sensor.status.message
     assert 1 <= len(readings) <= 30 - WINDOW + 1
     got = []
-    with LiveSensor(model, str(video), loop=True, **BACKEND) as sensor:
+    with LiveSensor(model, str(video), replace(TORCH, loop=True)) as sensor:
         for reading in sensor.readings():
             got.append(reading)
             if len(got) == 40:  # more than one pass of the file
@@ -290,7 +296,7 @@ def test_readings_file_errors_name_the_file_and_field(tmp_path, make_dataset):
 def test_run_live_headless_stops_after_n_frames(model, presses, tmp_path):
     frames, _ = presses
     lines = []
-    sensor = LiveSensor(model, ScriptedSource(frames), max_readings=10, **BACKEND)
+    sensor = LiveSensor(model, ScriptedSource(frames), replace(TORCH, max_readings=10))
     stats = run_live(sensor, viewer=False, output=tmp_path / "r.h5", echo=lines.append)
     assert stats.readings == 10
     assert sensor.status.state == "ended" and "10 readings" in sensor.status.message
@@ -377,7 +383,7 @@ def test_viewer_images_use_the_fixed_colour_scale():
 
 def test_sim_source_paces_simulated_frames_with_true_force(model):
     got = []
-    with LiveSensor(model, "sim", fps=30, seed=3, **BACKEND) as sensor:
+    with LiveSensor(model, "sim", replace(TORCH, source_fps=30, seed=3)) as sensor:
         assert sensor.source.name == "sim (seed 3)"
         for update in sensor.updates():
             got.append(update)
@@ -404,7 +410,9 @@ def test_virtual_camera_unplug_is_reported_and_reopened(model):
 
     camera = VirtualCamera(render, fps=60)
     log = StatusLog()
-    sensor = LiveSensor(model, camera, reconnect_backoff_s=(0.05, 0.2), **BACKEND)
+    sensor = LiveSensor(
+        model, camera, replace(TORCH, reconnect_initial_s=0.05, reconnect_max_s=0.2)
+    )
     sensor.add_listener(log)
     with sensor:
         readings = sensor.readings()

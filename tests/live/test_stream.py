@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,7 @@ import pytest
 from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
     BACKEND,
     TINY,
+    TORCH,
     WINDOW,
     ScriptedSource,
     no_thread_leaks,
@@ -167,7 +169,7 @@ def test_slow_client_gets_fresh_readings_and_counts_the_skipped(model):
     max_age_s, margin_s, interval_s = 0.5, 0.25, 0.1
     with (
         StreamServer(TINY, port=0, max_age_s=max_age_s) as server,
-        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,
     ):
         sensor.add_listener(server)
         command = [sys.executable, str(CLIENT), "--port", str(server.port), "--count", "40",

@@ -6,10 +6,12 @@ from __future__ import annotations
 import json
 import socket
 import time
+from dataclasses import replace
 
 import pytest
 from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
     BACKEND,
+    TORCH,
     no_thread_leaks,
     tiny_model,
     wait_until,
@@ -57,7 +59,7 @@ def sensing_rate(sensor: LiveSensor, seconds: float) -> float:
 
 def test_200_idle_event_streams_do_not_slow_sensing(model):
     with (
-        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,
         ViewerServer(sensor, port=0) as viewer,
     ):
         wait_until(lambda: sensor.stats().readings >= 10, 30, "readings")
@@ -88,7 +90,7 @@ def test_200_idle_event_streams_do_not_slow_sensing(model):
 
 def test_requests_for_a_foreign_host_are_refused(model, tmp_path):
     with (
-        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,
         ViewerServer(sensor, port=0, record_dir=tmp_path) as viewer,
     ):
         port, start = viewer.port, b'{"action": "start"}'
@@ -120,7 +122,7 @@ def test_host_names():
 
 def test_slow_requests_time_out(model):
     with (
-        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,
         ViewerServer(sensor, port=0, request_timeout_s=1.0) as viewer,
     ):
         sock = socket.create_connection(("127.0.0.1", viewer.port))
@@ -161,7 +163,7 @@ def test_slow_requests_time_out(model):
 )
 def test_bad_content_length_is_refused(model, tmp_path, headers, code):
     with (
-        LiveSensor(model, "sim", fps=30, **BACKEND) as sensor,
+        LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,
         ViewerServer(sensor, port=0, record_dir=tmp_path) as viewer,
     ):
         got, body = post_record(viewer.port, "127.0.0.1", b'{"action": "start"}', headers)

@@ -3,33 +3,17 @@ Playwright. Saves screenshots to artifacts/ (printed) for a person to look at.""
 
 from __future__ import annotations
 
-import os
-import queue
 import re
 import signal
-import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from browser_helpers import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, Beadsight
 from live_helpers import press_frames, tiny_model, write_video
 
 from beadsight.live.readings import open_readings
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-component-update",
-    "--disable-sync",
-]
-ARTIFACTS = Path(__file__).resolve().parents[2] / "artifacts"
 VIDEO_FPS = 30
 VIDEO_FRAMES = 210  # 7 s: long enough to load the page and watch it update
 
@@ -37,27 +21,6 @@ pytestmark = [
     pytest.mark.browser,
     pytest.mark.skipif(not CHROMIUM.exists(), reason="chromium is not installed"),
 ]
-
-
-def _lines(stream, out: queue.Queue) -> None:
-    for line in stream:
-        out.put(line.rstrip("\n"))
-    out.put(None)
-
-
-def _wait_line(lines: queue.Queue, pattern: str, timeout_s: float, seen: list[str]) -> re.Match:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            raise AssertionError(f"no line matching {pattern!r}; output so far: {seen}")
-        line = lines.get(timeout=remaining)
-        if line is None:
-            raise AssertionError(f"beadsight live exited; output: {seen}")
-        seen.append(line)
-        match = re.search(pattern, line)
-        if match:
-            return match
 
 
 def test_viewer_shows_live_readings_then_no_signal(tmp_path):
@@ -68,10 +31,7 @@ def test_viewer_shows_live_readings_then_no_signal(tmp_path):
     ARTIFACTS.mkdir(exist_ok=True)
     with playwright_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        command = [
-            sys.executable,
-            "-m",
-            "beadsight",
+        live = Beadsight(
             "live",
             "--checkpoint",
             str(checkpoint),
@@ -89,20 +49,10 @@ def test_viewer_shows_live_readings_then_no_signal(tmp_path):
             str(tmp_path),
             "--report-every",
             "1",
-        ]
-        proc = subprocess.Popen(
-            command,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
-        lines: queue.Queue = queue.Queue()
-        reader = threading.Thread(target=_lines, args=(proc.stdout, lines), daemon=True)
-        reader.start()
-        seen: list[str] = []
+        proc = live.proc
         try:
-            url = _wait_line(lines, r"viewer: (http://\S+)", 60, seen).group(1)
+            url = live.wait_line(r"viewer: (http://\S+)", 60).group(1)
             page = browser.new_page(viewport={"width": 1400, "height": 900})
             page.goto(url)
             _check_live_page(page, tmp_path)
@@ -124,9 +74,7 @@ def test_viewer_shows_live_readings_then_no_signal(tmp_path):
                 proc.wait(timeout=30)
             finally:
                 proc.kill()
-                reader.join(10)
-    while (line := lines.get_nowait()) is not None:
-        seen.append(line)
+    seen = live.rest()
     assert proc.returncode == 0, seen
     assert any(line.startswith("final: ") for line in seen), seen
 

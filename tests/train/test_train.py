@@ -55,7 +55,7 @@ def test_config_precedence_defaults_toml_flags(tmp_path):
     assert config.width == 8 and config.steps == 2 and config.split == (0.6, 0.2, 0.2)
     assert config.lr == 2e-4  # the flag beats the file
     assert config.batch_size == 64 and config.weight_decay == 1e-4 and config.dropout == 0.2
-    assert config.noise_std == 0.05 and config.precision == "fp32" and config.window == 15
+    assert config.noise_std == 0.05 and config.precision == "fp32" and config.frames == 15
     toml.write_text("bogus = 1\n")
     with pytest.raises(ConfigError, match="bogus"):
         resolve_train_config({"data": "d.h5", "out": "r"}, toml)
@@ -166,7 +166,7 @@ def test_train_cli_writes_a_complete_run_folder(make_dataset, tmp_path, capsys):
 
     for name in ("best.pt", "last.pt"):
         model = load_checkpoint(run / name)
-        assert model.window == 15 and model.image_size == 64 and model.meta.model.width == 8
+        assert model.span == 15 and model.image_size == 64 and model.meta.model.width == 8
         t = model.meta.training
         assert t["dataset_path"] == str(data.resolve())
         assert t["dataset_fingerprint"] == split["dataset_fingerprint"]
@@ -276,7 +276,7 @@ def test_fine_tune_from_a_checkpoint_with_a_cosine_schedule(make_dataset, tmp_pa
     args = ["--steps", 1, "--batch-size", 8, "--frame-stride", 2, "--no-progress"]
     assert cli("--data", data, "--out", strided, "--init", base / "best.pt", *args) == 0
     model = load_checkpoint(strided / "last.pt")
-    assert (model.meta.model.frame_stride, model.window) == (2, 29)
+    assert (model.meta.model.frame_stride, model.frames, model.span) == (2, 15, 29)
     split = json.loads((strided / "split.json").read_text())
     base_split = json.loads((base / "split.json").read_text())
     assert split["frame_stride"] == 2
@@ -319,8 +319,8 @@ def test_bad_training_inputs_name_the_field(make_dataset, tmp_path):
     odd = make_dataset(image_size=60, name="odd.h5")
     with pytest.raises(ConfigError, match="image_size 60"):
         train(TrainConfig(data=str(odd), out=out, width=8, steps=1))
-    with pytest.raises(ConfigError, match="window 50"):  # spans 246 frames; the data has 240
-        train(TrainConfig(data=str(data), out=out, width=8, steps=1, window=50, frame_stride=5))
+    with pytest.raises(ConfigError, match="frames 50"):  # spans 246 frames; the data has 240
+        train(TrainConfig(data=str(data), out=out, width=8, steps=1, frames=50, frame_stride=5))
     with pytest.raises(CheckpointError, match="no checkpoint to resume"):
         train(TrainConfig(data=str(data), out=out, width=8, steps=1, resume=True))
     with pytest.raises(DatasetError, match="missing.h5"):

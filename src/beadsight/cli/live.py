@@ -53,10 +53,10 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--precision", default=None, help=f"auto, {', '.join(PRECISIONS)}")
     p.add_argument(
         "--preprocess",
-        default=None,
-        help="frame preprocessing: automatic by default (model-size frames as they are, "
-        "1280x1024 through the reference unwarp); or reference, reference-linear, none, or "
-        "a fisheye calibration .json",
+        default="auto",
+        help="frame preprocessing: auto (default: model-size frames as they are, 1280x1024 "
+        "through the reference unwarp, other sizes refused); or reference, reference-linear, "
+        "none, or a fisheye calibration .json",
     )
     p.add_argument(
         "--fps",
@@ -112,16 +112,18 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_live_command(args: argparse.Namespace) -> int:
     from beadsight.cli.options import given
-    from beadsight.live.sensor import LiveSensor, run_live
+    from beadsight.live.run import run_live
+    from beadsight.live.sensor import LiveSensor
+    from beadsight.live.settings import LiveSettings
 
-    sensor = LiveSensor(
-        args.checkpoint,
+    settings = LiveSettings(
         preprocess=args.preprocess,
-        fps=args.fps,
+        source_fps=args.fps,
         loop=args.loop,
         max_readings=args.frames,
-        **given(source=args.source, backend=args.backend, precision=args.precision, seed=args.seed),
+        **given(backend=args.backend, precision=args.precision, seed=args.seed),
     )
+    sensor = LiveSensor(args.checkpoint, settings=settings, **given(source=args.source))
     run_live(
         sensor,
         viewer=not args.no_viewer,

@@ -17,14 +17,14 @@ TRAIN_FLAGS = (
     ("lr_min", "final learning rate of the cosine schedule"),
     (
         "init",
-        "start from this checkpoint's weights and normalisation (fine-tuning); window, "
+        "start from this checkpoint's weights and normalisation (fine-tuning); frames, "
         "frame stride, width and up-kernel default to the checkpoint's",
         {"metavar": "CHECKPOINT"},
     ),
     ("weight_decay", "AdamW weight decay"),
     ("dropout", "dropout in the U-Net conv blocks"),
     ("width", "U-Net width (channels of the first block)"),
-    ("window", "frames the network sees per prediction"),
+    ("frames", "T: frames the network sees per prediction"),
     ("frame_stride", "those frames are this many camera frames apart (1: consecutive)"),
     ("up_kernel", "U-Net up-conv kernel, 1 (reference) or 3", {"choices": (1, 3)}),
     (
@@ -33,7 +33,7 @@ TRAIN_FLAGS = (
         "(default: the dataset's size)",
         {"type": int},
     ),
-    ("device", "auto, cpu, cuda or cuda:N"),
+    ("device", "auto, cpu, cuda, cuda:N or mps"),
     ("precision", "fp32, bf16 (autocast) or fp16 (CUDA only)"),
     ("seed", "seed of split, init, batch order and augmentation"),
     ("noise_std", "Gaussian noise on the normalised input frames"),
@@ -85,6 +85,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         for name, help, *extra in TRAIN_FLAGS
     ]
     add_fields(p, TrainConfig, rows, override=True)
+    p.add_argument("--window", type=int, default=None, help=argparse.SUPPRESS)  # old --frames
 
 
 def _choices(choices: dict, name: str) -> dict:
@@ -96,7 +97,10 @@ def _train(args: argparse.Namespace) -> int:
     from beadsight.train.config import TrainConfig, resolve_train_config
     from beadsight.train.trainer import train
 
-    config = resolve_train_config(field_values(args, TrainConfig), args.config)
+    overrides = field_values(args, TrainConfig)
+    if args.window is not None:  # the old name of --frames: resolve_train_config warns
+        overrides["window"] = args.window
+    config = resolve_train_config(overrides, args.config)
     run = train(config)
     if os.environ.get("RANK", "0") != "0":  # under torchrun, rank 0 reports
         return 0

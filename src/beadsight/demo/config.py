@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 from beadsight.config import _Serializable
 from beadsight.errors import BeadSightError
+from beadsight.evaluation.config import ANIMATION_MAX_FRAMES
 
-SHIPPED_MODEL_RECORD = "sim_model.md"
 DEMO_SEED = 90_210  # held-out presses; training sets must use other seeds
 TRAIN_DEMO_SEED = 31_337  # the training set of ``demo --train``
 DEFAULT_OUT = "beadsight-demo"
@@ -16,10 +16,6 @@ MARKER = "demo.json"  # a folder holding this file is a demo report and may be o
 HELDOUT_FILE = "heldout.h5"
 ANIMATION_FILE = "animation.gif"
 INDEX_FILE = "index.html"
-ANIMATION_PANEL_PX = 192  # side of each panel of the animation
-ANIMATION_MARGIN_FRAMES = 12  # frames shown before contact begins and after it ends
-ANIMATION_MAX_FRAMES = 72  # at most this many (consecutive) animated frames
-ANIMATION_HEADER_PX = 22
 # The reference training recipe (reference-facts section 7), for the time estimate.
 REFERENCE_PRESSES = 500
 REFERENCE_EPOCHS = 100

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.resources
 import json
 import logging
 import math
@@ -19,39 +18,33 @@ from beadsight.demo.config import (
     ANIMATION_FILE,
     DEFAULT_TRAIN_FRACTION,
     HELDOUT_FILE,
-    INDEX_FILE,
     MARKER,
     REFERENCE_BATCH,
     REFERENCE_EPOCHS,
     REFERENCE_IMAGE_SIZE,
     REFERENCE_PRESSES,
     REFERENCE_WIDTH,
-    SHIPPED_MODEL_RECORD,
     TIMING_BATCH,
     TRAIN_DEMO_SEED,
     TRAIN_DEMO_VAL_STRIDE,
     DemoConfig,
     DemoError,
 )
-from beadsight.demo.report import (
+from beadsight.demo.report import demo_report, demo_summary, prepare_out_dir
+from beadsight.evaluation.animation import (
+    animation_colour_max,
     animation_frames,
-    prepare_out_dir,
     strongest_press,
     write_animation,
-    write_index,
-    write_summary,
 )
+from beadsight.evaluation.report import write_report
+from beadsight.files import atomic_write_json
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
 
 logger = logging.getLogger(__name__)
 
 
 # --- the model ----------------------------------------------------------------------
-def _model_record() -> str | None:
-    resource = importlib.resources.files("beadsight").joinpath("assets", SHIPPED_MODEL_RECORD)
-    return resource.read_text() if resource.is_file() else None
-
-
 def training_simulation(model: PressureModel) -> tuple[set[int], dict | None]:
     """Seeds and SimConfig dict of the simulated data a model was trained on, where known.
 
@@ -108,7 +101,6 @@ def _evaluate_and_report(
 ) -> dict:
     """Simulate held-out presses, evaluate, animate, write the report; returns the summary."""
     from beadsight.evaluation.evaluate import evaluate
-    from beadsight.evaluation.metrics import PAPER_METRICS, format_metrics_table
 
     out = Path(config.out)
     timings: dict[str, float] = dict(extra.pop("timings", {}))
@@ -129,6 +121,7 @@ def _evaluate_and_report(
             max_frames=config.max_frames,
             baselines=True,
             progress=config.progress,
+            report=False,
         )
         timings["evaluate_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -139,48 +132,11 @@ def _evaluate_and_report(
     finally:
         if not config.keep_data:
             data.unlink(missing_ok=True)
-    table = format_metrics_table(metrics, metrics.get("baselines"))
-    files = dict(
-        metrics.get("files", {}), animation=ANIMATION_FILE, report=INDEX_FILE, summary=MARKER
-    )
-    if config.keep_data:
-        files["heldout_dataset"] = HELDOUT_FILE
-    spread = f" (spread evenly, --max-frames {config.max_frames})" if config.max_frames else ""
-    summary = {
-        "description": (
-            f"{config.presses} held-out presses on {min(config.pouches, config.presses)} new "
-            f"pouches simulated with seed {seed} "
-            f"({sim_config.n_beads} beads, {sim_config.image_size_px} px, {sim_config.fps:g} fps); "
-            f"model {model.source}; {metrics['frames']} frames evaluated{spread}; "
-            f"animation: press {press} (the strongest)."
-        ),
-        "demo_config": config.to_dict(),
-        "seed": seed,
-        "sim_config": sim_config.to_dict(),
-        "checkpoint": str(model.source),
-        "metrics": {k: metrics.get(k) for k in PAPER_METRICS},
-        "baselines": metrics.get("baselines"),
-        "paper": dict(PAPER_METRICS),
-        "frames_evaluated": metrics["frames"],
-        "animation_press": press,
-        "timings_s": {
-            **{k: round(v, 2) for k, v in timings.items()},
-            "total_s": round(time.perf_counter() - extra.pop("started"), 1),
-        },
-        "files": files,
-        "notes": [
-            "The paper's figures are for the real sensor; these are for the simulated one. "
-            "Compare the model with the baselines here, and trends rather than digits with "
-            "the paper.",
-            "Baselines: 'zero' predicts no pressure; 'mean_gt' predicts the mean label of the "
-            "evaluated presses (a constant map).",
-            *extra.pop("notes", []),
-        ],
-        **extra,
-    }
-    write_summary(out, summary)
-    write_index(out, summary, table)
-    summary["table"] = table
+    extra["timings"] = timings
+    summary = demo_summary(model, config, sim_config, seed, metrics, press, extra)
+    atomic_write_json(out / MARKER, summary, strict=True)
+    colour_max = animation_colour_max(clip["gt"], clip["pred"])
+    write_report(demo_report(summary, metrics, sim_config, colour_max), out)
     return summary
 
 
@@ -208,16 +164,13 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict:
         "timings": {"load_model_s": time.perf_counter() - t0},
         "started": t0,
     }
-    record = _model_record() if config.checkpoint is None else None
-    if record:
-        extra["model_record"] = record
     return _evaluate_and_report(model, config, sim_config, seed, extra)
 
 
 # --- demo --train -------------------------------------------------------------------
 def time_reference_step(batch: int = TIMING_BATCH, steps: int = 1) -> float:
     """Seconds per training *sample* of the reference network (256 px, width 16,
-    window 15): forward, backward and AdamW on random inputs, after one warm-up step."""
+    15 frames): forward, backward and AdamW on random inputs, after one warm-up step."""
     import torch
 
     from beadsight.config import ModelConfig
@@ -226,7 +179,7 @@ def time_reference_step(batch: int = TIMING_BATCH, steps: int = 1) -> float:
     net = UNet(ModelConfig(width=REFERENCE_WIDTH))
     opt = torch.optim.AdamW(net.parameters(), lr=1e-4)
     s = REFERENCE_IMAGE_SIZE
-    x = torch.randn(batch, 3 * ModelConfig().window, s, s)
+    x = torch.randn(batch, 3 * ModelConfig().frames, s, s)
     y = torch.rand(batch, 1, s, s)
 
     def step() -> None:

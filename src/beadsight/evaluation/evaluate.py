@@ -13,7 +13,12 @@ previous press), compares with the ground truth of
   ``force_gt_n``/``force_pred_n`` (N,) N, ``cop_gt_mm``/``cop_pred_mm`` (N, 2) mm
   (NaN where that map has no positive pressure), ``index`` (N,) dataset frame
   index, appended batch by batch under a temporary name;
-* ``examples.png``, ``region_error.png``, ``force_traces.png``.
+* ``examples.png``, ``region_error.png``, ``force_traces.png``;
+* ``index.html``: the report page (:mod:`beadsight.evaluation.report`).
+
+A write that fails (disk full) raises :class:`beadsight.files.WriteError`; no file
+is left damaged under its final name (``predictions.h5`` is written as
+``predictions.h5.partial`` and removed on failure).
 
 Memory stays bounded by the batch size whatever the dataset's length. Which
 presses or frames form a split: :mod:`beadsight.evaluation.selection`.
@@ -23,8 +28,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import tempfile
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +50,7 @@ from beadsight.evaluation.plots import (
     plot_region_errors,
 )
 from beadsight.evaluation.predict import IncrementalH5, as_model
+from beadsight.evaluation.report import REPORT_FILE, evaluation_report, write_report
 from beadsight.evaluation.selection import (
     SPLIT_CHOICES,
     EvaluationError,
@@ -57,6 +61,7 @@ from beadsight.evaluation.selection import (
     selection_ends,
     subsample,
 )
+from beadsight.files import atomic_write_json
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +82,7 @@ EXAMPLE_PRESSES = 4  # presses shown in examples.png (the frame of peak force of
 TRACE_PRESSES = 3  # presses shown in force_traces.png
 MEAN_MAP_MAX_FRAMES = 4096  # training frames averaged for the mean-map baseline
 METRICS_FILE = "metrics.json"
-METRICS_FILE_MODE = 0o644  # mkstemp makes 0600 files; results are meant to be shared
+METRICS_FILE_MODE = 0o644  # results are meant to be shared
 PREDICTIONS_FILE = "predictions.h5"
 EXAMPLES_PLOT = "examples.png"
 REGION_PLOT = "region_error.png"
@@ -99,15 +104,15 @@ DEFINITIONS = {
 class WindowReader:
     """Reads frame windows for batches of end frames in increasing order.
 
-    The frames a batch shares with the previous one (the last ``window - 1``) are
+    The frames a batch shares with the previous one (the last ``span - 1``) are
     reused instead of read again; each contiguous run of the rest is read once.
     """
 
-    def __init__(self, ds: Dataset, window: int, image_size: int | None = None):
+    def __init__(self, ds: Dataset, span: int, image_size: int | None = None):
         self.ds = ds
-        self.window = window
+        self.span = span
         self.image_size = image_size or ds.image_size  # frames are resized to this (INTER_AREA)
-        self._offsets = np.arange(window - 1, -1, -1, dtype=np.int64)
+        self._offsets = np.arange(span - 1, -1, -1, dtype=np.int64)
         self._index = np.zeros(0, dtype=np.int64)  # sorted frame indices held in _frames
         self._frames = np.zeros((0, self.image_size, self.image_size, 3), dtype=np.uint8)
 
@@ -120,7 +125,7 @@ class WindowReader:
         return resize_frames(frames, self.image_size)
 
     def __call__(self, ends: np.ndarray) -> np.ndarray:
-        """(B,) end indices -> (B, T, S, S, 3) uint8 RGB windows, oldest frame first.
+        """(B,) end indices -> (B, span, S, S, 3) uint8 RGB windows, oldest frame first.
 
         S is ``image_size``."""
         ends = np.asarray(ends, dtype=np.int64)
@@ -137,14 +142,15 @@ class WindowReader:
         if missing.size:
             runs = np.split(missing, np.flatnonzero(np.diff(missing) != 1) + 1)
             block[~have] = np.concatenate([self._read(int(r[0]), int(r[-1]) + 1) for r in runs])
-        keep = max(need.size - (self.window - 1), 0)
+        keep = max(need.size - (self.span - 1), 0)
         self._index, self._frames = need[keep:], block[keep:].copy()
         return block[np.searchsorted(need, wanted)]
 
 
-def read_windows(ds: Dataset, ends: np.ndarray, window: int) -> np.ndarray:
-    """Frame windows ending at ``ends``: (B,) indices -> (B, T, S, S, 3) uint8 RGB, oldest first."""
-    return WindowReader(ds, window)(ends)
+def read_windows(ds: Dataset, ends: np.ndarray, span: int) -> np.ndarray:
+    """Frame windows ending at ``ends``: (B,) indices -> (B, span, S, S, 3) uint8 RGB, oldest
+    first."""
+    return WindowReader(ds, span)(ends)
 
 
 def evaluation_geometry(model: PressureModel, ds: Dataset, resize: bool = False) -> SensorGeometry:
@@ -256,19 +262,20 @@ def evaluate(
     plots: bool = True,
     resize: bool = False,
     progress: bool = True,
+    report: bool = True,
 ) -> dict:
     """Evaluate ``checkpoint`` on the ``split`` of dataset ``data``; returns the metrics dict.
 
     The dict holds mae_kpa, force_error_pct, cop_error_mm, iou (0..1),
     region_mae_kpa (4x4, None for empty cells), worst_region_mae_kpa, frames and
     per-metric frame counts (see :meth:`beadsight.evaluation.metrics.MetricsAccumulator.result`),
-    plus split, split_source, presses, checkpoint, dataset, window, image_size,
+    plus split, split_source, presses, checkpoint, dataset, span, model_config, image_size,
     device, paper, definitions and (``baselines=True``) ``baselines``: the same
     metrics for an all-zero map ("zero") and the mean training label ("mean_gt").
     ``max_frames`` evaluates that many frames spread evenly over the split.
     ``resize`` allows a checkpoint trained at another image size (see
     :func:`evaluation_geometry`). With ``out_dir`` the files of the module
-    docstring are written there.
+    docstring are written there (``report=False``: all but ``index.html``).
     """
     if batch_size < 1:
         raise EvaluationError(f"--batch-size must be >= 1, got {batch_size}")
@@ -302,8 +309,12 @@ def evaluate(
             metrics["files"] = {"metrics": METRICS_FILE, "predictions": PREDICTIONS_FILE}
             if plots:
                 metrics["files"].update(_write_plots(out, ds, run.geometry, col, metrics))
+            if report:
+                metrics["files"]["report"] = REPORT_FILE
     if out is not None:
         write_metrics_json(metrics, out / METRICS_FILE)
+        if report:
+            write_report(evaluation_report(metrics, geometry=run.geometry), out)
         log.info("wrote %s", out)
     return metrics
 
@@ -320,7 +331,7 @@ class _Run:
     def baseline_maps(self, selection: SplitSelection, ends: np.ndarray) -> dict[str, np.ndarray]:
         """The constant maps scored as baselines: all-zero and the mean training label."""
         ds, s = self.ds, self.geometry.image_size_px
-        train_ends = selection_ends(ds, selection, self.model.window, train=True)
+        train_ends = selection_ends(ds, selection, self.model.span, train=True)
         source = train_ends if train_ends.size else ends
         return {
             "zero": np.zeros((s, s), np.float32),
@@ -340,7 +351,7 @@ class _Run:
         accs = {name: MetricsAccumulator(self.geometry) for name in ("model", *base_maps)}
         examples = _example_frames(ds, ends, EXAMPLE_PRESSES)
         col = _Collected(examples, ds.press_id[examples[:TRACE_PRESSES]], {}, [])
-        reader = WindowReader(ds, model.window, self.geometry.image_size_px)
+        reader = WindowReader(ds, model.span, self.geometry.image_size_px)
         with ExitStack() as stack:
             writer = None
             if out is not None:
@@ -394,7 +405,8 @@ def _assemble(accs, model, ds, selection, ends, max_frames) -> dict:
         presses=int(np.unique(ds.press_id[ends]).size),
         checkpoint=str(model.source),
         dataset=str(ds.path),
-        window=model.window,
+        span=model.span,
+        model_config=model.meta.model.to_dict(),  # frames (T), frame_stride, ...
         image_size=model.image_size,
         device=str(model.device),
         max_frames=max_frames,
@@ -462,16 +474,4 @@ def _write_plots(
 
 def write_metrics_json(metrics: dict, path: str | Path) -> Path:
     """Write ``metrics`` as strict JSON (raises ValueError on NaN/inf), atomically."""
-    path = Path(path)
-    text = json.dumps(metrics, indent=2, allow_nan=False)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text + "\n")
-        os.chmod(tmp, METRICS_FILE_MODE)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write_json(path, metrics, strict=True, mode=METRICS_FILE_MODE)

@@ -56,6 +56,7 @@ PAPER_METRICS: dict[str, float] = {
     "iou": 0.81,
     "worst_region_mae_kpa": 1.05,
 }
+HIGHER_IS_BETTER = frozenset({"iou"})  # every other paper metric is an error: lower is better
 
 
 # --- Otsu ---------------------------------------------------------------------------
@@ -334,7 +335,7 @@ def compute_metrics(
 
 
 # --- reporting ----------------------------------------------------------------------
-_TABLE_ROWS = (
+TABLE_ROWS = (  # (metric key, label with unit, format) of the metrics tables
     ("mae_kpa", "pressure MAE (kPa)", "{:.3f}"),
     ("force_error_pct", "total-force error (%)", "{:.1f}"),
     ("cop_error_mm", "centre of pressure (mm)", "{:.2f}"),
@@ -361,7 +362,7 @@ def format_metrics_table(metrics: dict, baselines: dict[str, dict] | None = None
         return fmt.format(int(value) if fmt == "{:d}" else float(value))
 
     rows = [["metric", *(name for name, _ in columns)]]
-    rows += [[label, *(cell(m, key, fmt) for _, m in columns)] for key, label, fmt in _TABLE_ROWS]
+    rows += [[label, *(cell(m, key, fmt) for _, m in columns)] for key, label, fmt in TABLE_ROWS]
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = []
     for n, row in enumerate(rows):
@@ -371,3 +372,16 @@ def format_metrics_table(metrics: dict, baselines: dict[str, dict] | None = None
         if n == 0:
             lines.append("  ".join("-" * w for w in widths))
     return "\n".join(lines)
+
+
+def compare_with_paper(key: str, value: float | None, fmt: str = "{:.3g}") -> str | None:
+    """"better", "worse" or "same" than the paper's figure for metric ``key``, as shown
+    with ``fmt`` (values that print alike are the same); None if either is missing."""
+    paper = PAPER_METRICS.get(key)
+    if value is None or paper is None:
+        return None
+    ours, theirs = float(fmt.format(float(value))), float(fmt.format(float(paper)))
+    if ours == theirs:
+        return "same"
+    higher = key in HIGHER_IS_BETTER
+    return "better" if (ours > theirs) == higher else "worse"

@@ -1,7 +1,10 @@
-"""Evaluation figures (PNG): example maps, the 4x4 region error map, force over time.
+"""Evaluation figures (PNG): example maps, the 4x4 region error map, force over time;
+each with the caption a report shows under it.
 
 Figures are drawn on matplotlib's Agg canvas directly (no pyplot, no global
-backend state), so they work headless and in threads.
+backend state), so they work headless and in threads. Files are written with
+:func:`beadsight.files.atomic_write`: a full disk raises
+:class:`~beadsight.files.WriteError` and never leaves a truncated image.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from beadsight.config import SensorGeometry
+from beadsight.files import atomic_write
 
 DPI = 110
 PANEL_IN = 2.6  # side of one map panel, inches
@@ -31,10 +35,7 @@ def _new_figure(width_in: float, height_in: float) -> Figure:
 
 
 def _save(fig: Figure, path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
-    return path
+    return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=DPI))
 
 
 def _extent_mm(geometry: SensorGeometry) -> list[float]:
@@ -164,3 +165,39 @@ def plot_force_traces(traces: Sequence[ForceTrace], path: str | Path) -> Path:
     axes[0].set_ylabel("total force (N)")
     axes[0].legend(fontsize=8)
     return _save(fig, path)
+
+
+# --- captions -----------------------------------------------------------------------
+# What each figure shows and how to read it, for the reports (beadsight.evaluation.report).
+MAP_AXES = (
+    "Maps are drawn as the camera sees the sensor: x (mm, printer X) grows to the left, "
+    "y (mm, printer Y) grows upwards, 0 at the sensor centre."
+)
+
+
+def examples_caption() -> str:
+    return (
+        "True (top row) and predicted (bottom row) pressure maps at the frame of peak force of "
+        "a few presses spread over the evaluated data; the title gives the frame index and the "
+        f"true total force. {MAP_AXES} Colour: pressure in kPa ({PRESSURE_CMAP}: dark purple "
+        "0 kPa, yellow the maximum), one scale shared by all panels (bar on the right)."
+    )
+
+
+def region_error_caption(grid: int, cell_mm: float) -> str:
+    return (
+        f"Pressure MAE (kPa) by where the press was: the field of view cut into {grid} x {grid} "
+        f"cells of {cell_mm:g} mm, each frame counted in the cell of its press's commanded "
+        f"position (all frames of the press). Colour: MAE in kPa ({ERROR_CMAP}: black 0, "
+        "light yellow the worst cell); each cell prints its MAE and n, its number of frames; "
+        f"grey cells had no presses. {MAP_AXES}"
+    )
+
+
+def force_traces_caption() -> str:
+    return (
+        "Total force (N, the integral of the pressure map) over time for a few presses: the "
+        "ground truth (black, solid) and the model's prediction (red, dashed). Time in s from "
+        "the press's first evaluated frame; where frames were subsampled (--max-frames) the "
+        "lines join the evaluated frames."
+    )

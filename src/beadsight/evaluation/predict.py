@@ -4,7 +4,8 @@
 window (memory does not grow with the recording's length), predicts in batches
 and appends the results to an HDF5 file written under a temporary name and
 renamed into place at the end, so an interrupted run never leaves a truncated
-file where a finished one is expected.
+file where a finished one is expected. A write that fails (disk full) raises
+:class:`beadsight.files.WriteError` naming the file; the partial file is removed.
 
 Output layout (``format = "beadsight-predictions"``), one row per input frame:
 
@@ -20,15 +21,18 @@ dataset            shape        dtype    content
 ``timestamp_s``    (N,)         float64  dataset timestamps (unix s), or video frame
                                          times (s from the start of the video)
 ``frame_index``    (N,)         int64    index of the frame in the input
-``valid``          (N,)         bool     False for the first T-1 frames (no full window)
+``valid``          (N,)         bool     False for the first span-1 frames (no full window)
 =================  ===========  =======  ===============================================
+
+Attributes include ``frames`` (T, the frames the network sees) and ``span`` (the
+frames one window covers); files of format version 1 have ``window`` (the span)
+instead of both.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -45,15 +49,16 @@ from beadsight.data.dataset import open_dataset
 from beadsight.errors import BeadSightError
 from beadsight.evaluation.config import DEFAULT_DEVICE, PREDICT_PREPROCESS
 from beadsight.evaluation.config import PREDICT_BATCH_SIZE as DEFAULT_BATCH_SIZE
+from beadsight.evaluation.h5writer import IncrementalH5
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
+from beadsight.inference.frames import check_preprocess, input_converter
+from beadsight.preprocess import FrameSizeError
+from beadsight.torch_device import resolve_device
 
 log = logging.getLogger(__name__)
 
 PREDICTIONS_FORMAT = "beadsight-predictions"
-PREDICTIONS_FORMAT_VERSION = 1
-PREPROCESS_MODES = ("auto", "none", "reference")
-H5_COMPRESSION = "gzip"
-H5_COMPRESSION_LEVEL = 1  # gzip level: ~2x faster than 4 on float maps, ~5 % larger
+PREDICTIONS_FORMAT_VERSION = 2  # 2: attributes "frames" and "span" replace "window"
 READ_CHUNK_FRAMES = 64  # frames read from a dataset at a time
 
 
@@ -62,110 +67,30 @@ class PredictionError(BeadSightError):
 
 
 # --- devices ------------------------------------------------------------------------
-def resolve_device(name: str | torch.device = "auto") -> torch.device:
-    """``"auto"`` -> CUDA if available, else MPS if available, else CPU; otherwise torch.device(name).
-
-    Raises BeadSightError naming the device if it is unknown or not available.
-    """
-    if isinstance(name, torch.device):
-        return name
-    if name == "auto":
-        if torch.cuda.is_available():
-            return torch.device("cuda")
-        mps = getattr(torch.backends, "mps", None)
-        return torch.device("mps" if mps is not None and mps.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError as e:
-        raise BeadSightError(f"--device {name!r}: not a torch device ({e})") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise BeadSightError(f"--device {name!r}: CUDA is not available on this machine")
-    return device
-
-
 def as_model(checkpoint: PressureModel | str | Path, device: str | torch.device) -> PressureModel:
-    """A loaded model on ``device``: a PressureModel is moved, a path is loaded."""
+    """A loaded model on ``device`` (:func:`beadsight.torch_device.resolve_device`): a
+    PressureModel is moved, a path is loaded."""
     model = checkpoint if isinstance(checkpoint, PressureModel) else load_checkpoint(checkpoint)
-    return model.to(resolve_device(device))
-
-
-# --- incremental HDF5 ---------------------------------------------------------------
-class IncrementalH5:
-    """Append rows to resizable HDF5 datasets in ``<path>.partial``; rename on finish.
-
-    specs: {name: (row_shape, dtype, compress)}; compressed datasets use gzip with
-    one row per chunk. Use as a context manager: an exception deletes the partial
-    file and leaves any existing ``path`` untouched.
-    """
-
-    def __init__(self, path: str | Path, specs: dict[str, tuple[tuple[int, ...], object, bool]]):
-        self.path = Path(path)
-        self.partial = self.path.with_name(self.path.name + ".partial")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.file = h5py.File(self.partial, "w")
-        self.rows = 0
-        for name, (row_shape, dtype, compress) in specs.items():
-            chunk_rows = 1 if compress else 4096
-            ds = self.file.create_dataset(
-                name,
-                (0, *row_shape),
-                dtype=dtype,
-                maxshape=(None, *row_shape),
-                chunks=(chunk_rows, *row_shape),
-                compression=H5_COMPRESSION if compress else None,
-                compression_opts=H5_COMPRESSION_LEVEL if compress else None,
-            )
-            ds.attrs["row_shape"] = json.dumps(list(row_shape))
-
-    def append(self, **columns: np.ndarray) -> None:
-        """Append n rows; every dataset must receive the same number of rows."""
-        lengths = {len(v) for v in columns.values()}
-        if len(lengths) != 1 or set(columns) != set(self.file.keys()):
-            raise ValueError(f"append needs one row count for all of {sorted(self.file.keys())}")
-        n = lengths.pop()
-        for name, values in columns.items():
-            ds = self.file[name]
-            ds.resize(self.rows + n, axis=0)
-            ds[self.rows :] = values
-        self.rows += n
-
-    def finish(self) -> Path:
-        self.file.close()
-        os.replace(self.partial, self.path)
-        return self.path
-
-    def abort(self) -> None:
-        if self.file.id.valid:
-            self.file.close()
-        self.partial.unlink(missing_ok=True)
-
-    def __enter__(self) -> IncrementalH5:
-        return self
-
-    def __exit__(self, exc_type, *exc: object) -> None:
-        if exc_type is None:
-            self.finish()
-        else:
-            self.abort()
+    return model.to(resolve_device(device, "--device"))
 
 
 # --- ring buffer --------------------------------------------------------------------
 class WindowBuffer:
-    """The last ``window - 1`` frames, so a stream of chunks becomes model windows.
+    """The last ``span - 1`` frames, so a stream of chunks becomes model windows.
 
-    push(frames (n, S, S, 3)) -> windows (m, T, S, S, 3) for the last m = n - k
-    frames of the chunk, where the first k frames of the whole stream (k < T)
-    lack a full window. Memory: T - 1 frames plus one chunk.
+    push(frames (n, S, S, 3)) -> windows (m, span, S, S, 3) for the last m = n - k
+    frames of the chunk, where the first k frames of the whole stream (k < span)
+    lack a full window. Memory: span - 1 frames plus one chunk.
     """
 
-    def __init__(self, window: int):
-        self.window = window
+    def __init__(self, span: int):
+        self.span = span
         self.seen = 0
         self._tail: np.ndarray | None = None
 
     def push(self, frames: np.ndarray) -> tuple[np.ndarray, int]:
         """Returns (windows, first): windows end at chunk frames ``first .. n-1``."""
-        t = self.window
+        t = self.span
         full = frames if self._tail is None else np.concatenate([self._tail, frames])
         n_prev = len(full) - len(frames)
         first = min(max(t - 1 - self.seen, 0), len(frames))
@@ -248,37 +173,15 @@ class _VideoSource(_Source):
         self.total = count if count > 0 else None
         fps = float(self.cap.get(cv2.CAP_PROP_FPS))
         self.fps = fps if fps > 0 else float("nan")
-        self._convert = self._converter(first.shape, model, preprocess)
+        self._convert = self._converter(first, model, preprocess)
+        self.preprocess = self._convert.mode
 
-    def _converter(self, shape: tuple[int, ...], model: PressureModel, preprocess: str):
-        import cv2
-
-        s = model.image_size
-        h, w = shape[:2]
-        if len(shape) != 3 or shape[2] != 3:
-            raise PredictionError(f"{self.path}: expected 3-channel colour frames, got {shape}")
-        if preprocess in ("auto", "none") and (h, w) == (s, s):
-            self.preprocess = "none"
-            return lambda bgr: cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-        if preprocess == "none":
-            raise PredictionError(
-                f"{self.path}: video frames are {h}x{w} px, but the checkpoint {model.source} "
-                f"expects image_size={s}x{s}; use --preprocess auto or reference to unwarp, "
-                "crop and resize raw camera frames"
-            )
+    def _converter(self, first: np.ndarray, model: PressureModel, preprocess: str):
         try:
-            from beadsight.preprocess import Preprocessor
-        except ImportError as e:
-            raise PredictionError(
-                f"{self.path}: frames of {h}x{w} px need preprocessing, but "
-                f"beadsight.preprocess is not available ({e})"
-            ) from None
-        if preprocess in ("auto", "reference"):
-            self.preprocess = "reference"
-            return Preprocessor.reference(input_hw=(h, w), output_size=s)
-        self.preprocess = preprocess  # another spec: reference-linear or a calibration file
-        return Preprocessor.from_spec(preprocess, input_hw=(h, w), output_size=s)
-
+            return input_converter(first, "BGR", model.image_size, preprocess, str(self.path))
+        except FrameSizeError as e:
+            self.cap.release()
+            raise PredictionError(f"{e} (checkpoint {model.source})") from None
     def _frame(self, bgr: np.ndarray, index: int) -> np.ndarray:
         if bgr.shape != self._first.shape:
             raise PredictionError(
@@ -310,8 +213,10 @@ class _VideoSource(_Source):
 
 
 def _open_source(path: Path, model: PressureModel, preprocess: str) -> _Source:
-    if not preprocess:
-        raise PredictionError(f"--preprocess: expected one of {PREPROCESS_MODES}, got nothing")
+    try:
+        preprocess = check_preprocess(preprocess or "")
+    except ValueError as e:
+        raise PredictionError(f"--{e}") from None
     if not path.is_file():
         raise PredictionError(f"{path}: input file not found")
     if h5py.is_hdf5(path):
@@ -356,11 +261,11 @@ def predict_recording(
 
     checkpoint: a PressureModel or a checkpoint path. input: a beadsight/reference
     HDF5 dataset (frames at the model's size) or a video file readable by OpenCV.
-    preprocess: "auto" (video frames already square at the model's size are used
-    as they are, BGR -> RGB; others go through the reference preprocessing),
-    "none" (frames must be at the model's size), "reference" (always preprocess);
-    any other value is a :meth:`beadsight.preprocess.Preprocessor.from_spec` spec
-    ("reference-linear" or a fisheye calibration JSON file) applied to video frames.
+    preprocess: how video frames become model input, the rule of
+    :mod:`beadsight.inference.frames` ("auto": frames at the model's size as they are,
+    raw 1280x1024 camera frames through the reference pipeline, other sizes refused;
+    "none", "reference", "reference-linear", or a fisheye calibration .json). Dataset
+    frames are already preprocessed ("auto" or "none").
     Returns the output path; the layout is in this module's docstring.
     """
     if batch_size < 1:
@@ -372,7 +277,7 @@ def predict_recording(
         raise PredictionError(f"{out}: the output would overwrite the input")
     model = as_model(checkpoint, device)
     source = _open_source(input, model, preprocess)
-    s, t = model.image_size, model.window
+    s, t = model.image_size, model.span
     try:
         with IncrementalH5(out, _output_specs(s)) as writer:
             writer.file.attrs.update(_attrs(model, input, source))
@@ -385,7 +290,7 @@ def predict_recording(
                     bar.update(len(chunk.frames))
             if writer.rows < t:
                 log.warning(
-                    "%s: %d frames, fewer than the window of %d: no valid prediction",
+                    "%s: %d frames, fewer than the span of %d: no valid prediction",
                     input,
                     writer.rows,
                     t,
@@ -429,7 +334,8 @@ def _attrs(model: PressureModel, input: Path, source: _Source) -> dict:
         "input_kind": source.kind,
         "preprocess": source.preprocess,
         "fps": source.fps,
-        "window": model.window,
+        "frames": model.frames,
+        "span": model.span,
         "image_size": model.image_size,
         "geometry": model.geometry.to_json(),
         "units": json.dumps(

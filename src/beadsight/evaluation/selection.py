@@ -221,10 +221,10 @@ def evaluation_frames(
             f"{ds.path}: the {selection.name!r} split has no presses ({ds.num_presses} in the "
             "dataset); use --split all"
         )
-    ends = selection_ends(ds, selection, model.window, train=False)
+    ends = selection_ends(ds, selection, model.span, train=False)
     if ends.size == 0:
         raise EvaluationError(
-            f"window mismatch: the checkpoint {model.source} needs {model.window} "
+            f"window mismatch: the checkpoint {model.source} needs {model.span} "
             f"consecutive valid frames of history, but no frame of the {selection.name!r} split "
             f"of {ds.path} has them (longest run of valid frames: "
             f"{_longest_valid_run(ds)})"

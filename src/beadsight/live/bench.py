@@ -33,8 +33,8 @@ from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.errors import ConfigError
 from beadsight.geometry import disk_pressure_kpa
+from beadsight.inference.parity import check_parity, probe_windows
 from beadsight.inference.predictor import PressurePredictor
-from beadsight.inference.runtimes import check_parity, probe_windows
 
 log = logging.getLogger(__name__)
 
@@ -57,13 +57,13 @@ def reference_output_scale_kpa(geometry: SensorGeometry) -> float:
 
 
 def random_model(
-    image_size: int = 256, window: int = 15, width: int = 16, seed: int = 0
+    image_size: int = 256, frames: int = 15, width: int = 16, seed: int = 0
 ) -> PressureModel:
     """A randomly initialised model (default: reference size, 504k parameters) whose
     output is scaled like a trained one (:func:`reference_output_scale_kpa`)."""
     geometry = SensorGeometry(image_size_px=image_size)
     meta = CheckpointMeta(
-        model=ModelConfig(window=window, width=width),
+        model=ModelConfig(frames=frames, width=width),
         geometry=geometry,
         pixel_mean=list(SYNTHETIC_PIXEL_MEAN),
         pixel_std=list(SYNTHETIC_PIXEL_STD),
@@ -186,7 +186,7 @@ def run_sustained(
 def max_error_pct(predictor: PressurePredictor, frames: np.ndarray) -> float:
     """Largest error vs fp32 torch, % of max(peak, floor): probes + a few stream windows."""
     model = predictor.model
-    t = model.window
+    t = model.span
     starts = np.linspace(0, max(len(frames) - t, 0), ERROR_SAMPLE_WINDOWS).astype(int)
     stream = [frames[s : s + t] for s in starts if len(frames[s : s + t]) == t]
     windows = np.concatenate([probe_windows(model), np.stack(stream)]) if stream else None
@@ -254,7 +254,7 @@ def _json_safe(value: Any) -> Any:
 
 def bench_live(
     model: PressureModel | None = None,
-    backend: Any = "auto",
+    backend: str = "auto",
     precision: str = "auto",
     frames: int = 600,
     rate_hz: float | None = DEFAULT_RATE_HZ,
@@ -269,15 +269,15 @@ def bench_live(
     rate_hz: the sustained run's camera rate; None or 0 skips it.
     """
     model = model if model is not None else random_model(seed=seed)
-    if frames < model.window + 1:
-        raise ConfigError(f"frames must be > the window ({model.window}), got {frames}")
+    if frames < model.span + 1:
+        raise ConfigError(f"frames must be > the span ({model.span}), got {frames}")
     if source_frames is None:
         count = min(frames, DEFAULT_SOURCE_FRAMES)
         source_frames, source = simulated_frames(model.image_size, count, seed)
     else:
         source = "given frames"
-    predictor = PressurePredictor(
-        model, backend, precision, device, on_gap="ignore", backend_options=backend_options
+    predictor = PressurePredictor.from_checkpoint(
+        model, backend, precision, device, **(backend_options or {}), on_gap="ignore"
     )
     try:
         throughput = run_max_throughput(predictor, source_frames, frames)
@@ -293,7 +293,8 @@ def bench_live(
             source=source,
             model={
                 "image_size": model.image_size,
-                "window": model.window,
+                "frames": model.frames,
+                "span": model.span,
                 "width": model.meta.model.width,
                 "parameters": sum(p.numel() for p in model.module.net.parameters()),
                 "checkpoint": model.source,

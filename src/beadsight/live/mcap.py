@@ -314,7 +314,7 @@ class McapReadingsWriter(PartialWriter):
 
 
 class _Row:
-    """One reading of a readings file, shaped like ``beadsight.inference.predictor.Reading``."""
+    """One reading of a readings file, shaped like ``beadsight.inference.predictor.PressureReading``."""
 
     def __init__(self, rf, i: int):
         self.pressure_kpa = rf.pressure_kpa[i]

@@ -72,7 +72,7 @@ class ReadingsFileError(BeadSightError, ValueError):
 
 
 class ReadingLike(Protocol):
-    """What a recorder needs from a reading (``beadsight.inference.predictor.Reading`` has it)."""
+    """What a recorder needs from a reading (``beadsight.inference.predictor.PressureReading`` has it)."""
 
     pressure_kpa: np.ndarray
     force_n: float

@@ -234,7 +234,7 @@ class Recorder:
         on_error: Callable[[BaseException], None] | None = None,
         maxsize: int = RECORDER_QUEUE_SIZE,
     ):
-        from beadsight.live.sensor import UpdateQueue
+        from beadsight.live.listeners import UpdateQueue
 
         self.writer = writer
         self.path = Path(writer.path)

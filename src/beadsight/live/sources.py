@@ -27,7 +27,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from beadsight.devices.base import Camera, Frame
@@ -94,47 +93,17 @@ def frame_converter(
     first: Frame,
     source_name: str,
     image_size: int,
-    preprocess: str | Path | None = None,
+    preprocess: str | Path | None = "auto",
 ) -> Callable[[Frame], np.ndarray]:
-    """How frames like ``first`` become (S, S, 3) uint8 RGB model input.
+    """How frames like ``first`` become (S, S, 3) uint8 RGB model input: the one rule of
+    :func:`beadsight.inference.frames.input_converter` (``preprocess`` "auto" by default;
+    None means "auto")."""
+    from beadsight.inference.frames import input_converter
 
-    Without ``preprocess``: frames at the model's size are used as they are (BGR ones
-    reordered); raw frames at the reference camera's 1280x1024 go through
-    :meth:`~beadsight.preprocess.Preprocessor.reference`; any other size is an error
-    naming both sizes. ``preprocess`` is a
-    :meth:`~beadsight.preprocess.Preprocessor.from_spec` spec for other cameras.
-    """
-    from beadsight.preprocess import REFERENCE_INPUT_HW, FrameSizeError, Preprocessor
-
-    image = first.image
-    if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3:
-        raise FrameSizeError(
-            f"source {source_name}: expected (H, W, 3) colour frames, got "
-            f"{getattr(image, 'shape', None)}"
-        )
-    if image.dtype != np.uint8:
-        raise FrameSizeError(f"source {source_name}: expected uint8 frames, got {image.dtype}")
-    hw = tuple(image.shape[:2])
-    rgb_in = first.channel_order == "RGB"
-    if preprocess is None and hw == (image_size, image_size):
-        if rgb_in:
-            return lambda f: f.image
-        return lambda f: cv2.cvtColor(f.image, cv2.COLOR_BGR2RGB)
-    if preprocess is None and hw == tuple(REFERENCE_INPUT_HW):
-        pre = Preprocessor.reference(hw, image_size)
-    elif preprocess is None:
-        ref_h, ref_w = REFERENCE_INPUT_HW
-        raise FrameSizeError(
-            f"source {source_name} delivers {hw[1]}x{hw[0]} frames, but the checkpoint expects "
-            f"{image_size}x{image_size} sensor-space frames (or {ref_w}x{ref_h} raw camera "
-            "frames, which go through the reference preprocessing); set the camera to "
-            f"{ref_w}x{ref_h}, or pass a preprocessing spec (--preprocess CALIBRATION.json)"
-        )
-    else:
-        pre = Preprocessor.from_spec(preprocess, hw, image_size)
-    if rgb_in:
-        return lambda f: pre(cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
-    return lambda f: pre(f.image)
+    convert = input_converter(
+        first.image, first.channel_order, image_size, preprocess, f"source {source_name}"
+    )
+    return lambda frame: convert(frame.image)
 
 
 def __getattr__(name: str) -> Any:

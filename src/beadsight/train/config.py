@@ -19,10 +19,12 @@ from typing import Any
 
 from beadsight.config import (
     DEFAULT_SPLIT_FRACTIONS,
+    DEVICE_CHOICES,
     ConfigError,
     ModelConfig,
     _Serializable,
     load_toml,
+    renamed_fields,
 )
 
 CONFIG_FILE = "config.json"  # the resolved TrainConfig in the run folder
@@ -32,7 +34,7 @@ LR_SCHEDULES = ("constant", "cosine")
 LOADER_MODES = ("auto", "host", "device")
 # Fields a resumed run must share with the run it continues (others, e.g. steps, may change).
 RESUME_FIXED_FIELDS = (
-    "window",
+    "frames",
     "frame_stride",
     "width",
     "up_kernel",
@@ -48,9 +50,9 @@ RESUME_FIXED_FIELDS = (
     "noise_std",
 )
 # Settings read from the ``init`` checkpoint when neither the TOML file nor a flag sets them.
-INIT_MODEL_FIELDS = ("window", "frame_stride", "width", "up_kernel")
+INIT_MODEL_FIELDS = ("frames", "frame_stride", "width", "up_kernel")
 # Of those, the ones the weights' shapes fix (a run may change the stride of its init).
-INIT_SHAPE_FIELDS = ("window", "width", "up_kernel")
+INIT_SHAPE_FIELDS = ("frames", "width", "up_kernel")
 _INT_MINIMUMS = {
     "epochs": 1,
     "batch_size": 1,
@@ -64,6 +66,7 @@ _OPTIONAL_INTS = ("steps", "threads", "image_size")  # None, or an integer >= 1
 _NON_NEGATIVE = ("lr", "lr_min", "weight_decay", "noise_std", "checkpoint_every_min")
 
 
+@renamed_fields(window="frames")
 @dataclass(frozen=True)
 class TrainConfig(_Serializable):
     """Everything a training run depends on; stored as the run's config.json."""
@@ -80,7 +83,7 @@ class TrainConfig(_Serializable):
     weight_decay: float = 1e-4  # AdamW decoupled weight decay
     dropout: float = 0.2  # conv-block dropout
     width: int = 16  # U-Net channels of the first block
-    window: int = 15  # frames the network sees per prediction
+    frames: int = 15  # T: frames the network sees per prediction
     frame_stride: int = 1  # those frames are this many camera frames apart
     up_kernel: int = 1  # U-Net up-conv kernel (1 = reference weights, 3 = paper text)
     image_size: int | None = None  # train at this size (px, multiple of 8); None: the dataset's
@@ -110,7 +113,7 @@ class TrainConfig(_Serializable):
         self._check_numbers()
         self._check_choices()
         object.__setattr__(self, "split", _check_split(self.split))
-        self.model_config()  # validates width, window, up_kernel, dropout
+        self.model_config()  # validates width, frames, up_kernel, dropout
 
     def _check_numbers(self) -> None:
         for name, minimum in _INT_MINIMUMS.items():
@@ -141,14 +144,14 @@ class TrainConfig(_Serializable):
         ):
             if getattr(self, name) not in choices:
                 raise ConfigError(f"{name} must be one of {choices}, got {getattr(self, name)!r}")
-        if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", str(self.device)):
-            raise ConfigError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
+        if not re.fullmatch(r"auto|cpu|mps|cuda(:\d+)?", str(self.device)):
+            raise ConfigError(f"device must be {DEVICE_CHOICES}, got {self.device!r}")
         if self.precision == "fp16" and self.device == "cpu":
             raise ConfigError("precision fp16 needs a CUDA device; use bf16 or fp32 on cpu")
 
     def model_config(self) -> ModelConfig:
         return ModelConfig(
-            window=self.window,
+            frames=self.frames,
             frame_stride=self.frame_stride,
             width=self.width,
             up_kernel=self.up_kernel,
@@ -157,7 +160,7 @@ class TrainConfig(_Serializable):
 
     @property
     def span(self) -> int:
-        """Frames in one training window (the model config's span)."""
+        """Consecutive frames one training window covers (the model config's span)."""
         return self.model_config().span
 
     def learning_rate(self, step: int, total_steps: int) -> float:
@@ -207,12 +210,14 @@ def resolve_train_config(
     if config_file is not None:
         raw = load_toml(config_file)
         file_values = raw["train"] if isinstance(raw.get("train"), dict) else raw
+        file_values = TrainConfig.upgrade_keys(file_values, source=str(config_file))
         unknown = sorted(set(file_values) - names)
         if unknown:
             raise ConfigError(
                 f"{config_file}: unknown training setting(s) {unknown}; known: {sorted(names)}"
             )
     given = {k: v for k, v in overrides.items() if v is not None}
+    given = TrainConfig.upgrade_keys(given, source="training settings")
     unknown = sorted(set(given) - names)
     if unknown:
         raise ConfigError(f"unknown training setting(s) {unknown}")
@@ -247,4 +252,4 @@ def _stored_config(early: Mapping[str, Any], names: set[str]) -> dict[str, Any]:
         raise ConfigError(f"{stored}: not valid JSON ({e})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{stored}: expected a JSON object of training settings")
-    return {k: v for k, v in data.items() if k in names}
+    return {k: v for k, v in TrainConfig.upgrade_keys(data).items() if k in names}

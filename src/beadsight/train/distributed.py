@@ -80,21 +80,19 @@ class Distributed:
 
 
 def resolve_device(name: str, precision: str = "fp32") -> torch.device:
-    """The torch device for a configured ``name`` (auto | cpu | cuda | cuda:N).
+    """The device by :func:`beadsight.torch_device.resolve_device`; a plain ``cuda`` under
+    torchrun is the process's ``LOCAL_RANK`` GPU."""
+    from beadsight.torch_device import resolve_device as resolve_torch_device
 
-    ``cuda`` under torchrun is the process's ``LOCAL_RANK`` GPU.
-    """
-    wanted = name
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise ConfigError(f"device {wanted!r}: CUDA is not available on this machine")
-        if name == "cuda":
-            name = f"cuda:{_env_int('LOCAL_RANK', 0) if _env_int('WORLD_SIZE', 1) > 1 else 0}"
-        device = torch.device(name)
+    device = resolve_torch_device(name, "device")
+    world = _env_int("WORLD_SIZE", 1)
+    if device.type == "cuda":
+        if device.index is None:
+            device = torch.device(f"cuda:{_env_int('LOCAL_RANK', 0) if world > 1 else 0}")
         torch.cuda.set_device(device)
         return device
     if precision == "fp16":
-        raise ConfigError("precision fp16 needs a CUDA device; use bf16 or fp32 on cpu")
-    return torch.device("cpu")
+        raise ConfigError(f"precision fp16 needs a CUDA device; use bf16 or fp32 on {device}")
+    if device.type == "mps" and world > 1:
+        raise ConfigError("device mps: one process only (distributed training needs cuda or cpu)")
+    return device

@@ -91,7 +91,7 @@ def prepare_data(
         labels[name] = WindowLabels.from_dataset(ds, ends, image_size)
     if len(labels["train"]) == 0:
         raise ConfigError(
-            f"window {config.window} (frame stride {config.frame_stride}): no frame of the "
+            f"frames {config.frames} (frame stride {config.frame_stride}): no frame of the "
             f"{len(split['train'])} train presses of {ds.path} has the {span} consecutive valid "
             "frames of history a training window needs"
         )
@@ -109,7 +109,7 @@ def split_record(config: TrainConfig, ds: Dataset, data: RunData) -> dict[str, A
         "num_presses": int(ds.num_presses),
         "fractions": list(config.split),
         "seed": config.seed,
-        "window": config.window,
+        "frames": config.frames,
         "frame_stride": config.frame_stride,
         **{name: [int(i) for i in data.split[name]] for name in SPLITS},
         "windows": {name: len(data.labels[name]) for name in data.labels},

@@ -1,6 +1,7 @@
-"""Training windows: causal stacks of T frames labelled by their newest frame.
+"""Training windows: causal stacks of ``span`` consecutive frames labelled by their newest
+frame (the model sees ``frames`` of them, every ``frame_stride``-th).
 
-A window ending at frame ``e`` holds frames ``e-T+1 .. e`` (oldest first); its
+A window ending at frame ``e`` holds frames ``e-span+1 .. e`` (oldest first); its
 target is the ground-truth pressure map of frame ``e``
 (:func:`beadsight.data.labels.label_maps`), so the model never sees the future.
 Which frames may end a window comes from :func:`beadsight.data.splits.dataset_window_ends`,
@@ -66,10 +67,11 @@ def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
-def window_frame_mask(ends: np.ndarray, window: int, num_frames: int) -> np.ndarray:
-    """(N,) bool: frames that belong to at least one window ending at ``ends``."""
+def window_frame_mask(ends: np.ndarray, span: int, num_frames: int) -> np.ndarray:
+    """(N,) bool: frames that belong to at least one window (of ``span`` frames) ending at
+    ``ends``."""
     delta = np.zeros(num_frames + 1, dtype=np.int64)
-    np.add.at(delta, np.asarray(ends) - window + 1, 1)
+    np.add.at(delta, np.asarray(ends) - span + 1, 1)
     np.add.at(delta, np.asarray(ends) + 1, -1)
     return np.cumsum(delta[:-1]) > 0
 
@@ -162,10 +164,10 @@ class WindowDataset(torch.utils.data.Dataset):
     in each process, so the dataset can go to DataLoader workers.
     """
 
-    def __init__(self, path: str | Path, labels: WindowLabels, window: int):
+    def __init__(self, path: str | Path, labels: WindowLabels, span: int):
         self.path = Path(path)
         self.labels = labels
-        self.window = window
+        self.span = span
         self._ds: Dataset | None = None
         self._pid = -1
 
@@ -182,9 +184,9 @@ class WindowDataset(torch.utils.data.Dataset):
         return self._ds
 
     def read(self, i: int) -> np.ndarray:
-        """(T, S, S, 3) uint8 RGB frames of window ``i``."""
+        """(span, S, S, 3) uint8 RGB frames of window ``i``."""
         end = int(self.labels.ends[i])
-        frames = self._dataset().read_frames(end - self.window + 1, end + 1)
+        frames = self._dataset().read_frames(end - self.span + 1, end + 1)
         return resize_frames(frames, self.labels.geometry.image_size_px)
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -244,21 +246,21 @@ class DeviceFrames:
 class DeviceWindows:
     """Device-mode windows: batches gathered from :class:`DeviceFrames` and labelled on the device.
 
-    ``batch(index)`` with (B,) window indices returns (frames (B, T, S, S, 3) uint8
+    ``batch(index)`` with (B,) window indices returns (frames (B, span, S, S, 3) uint8
     RGB, targets (B, S, S) float32 kPa), both on the frames' device.
     """
 
-    def __init__(self, store: DeviceFrames, labels: WindowLabels, window: int):
+    def __init__(self, store: DeviceFrames, labels: WindowLabels, span: int):
         device = store.frames.device
         compact_ends = store.compact[labels.ends]
-        if (compact_ends < window - 1).any() or (store.compact[labels.ends - window + 1] < 0).any():
+        if (compact_ends < span - 1).any() or (store.compact[labels.ends - span + 1] < 0).any():
             raise ValueError("DeviceWindows: the frame store lacks frames of some windows")
         self.store = store
         self.labels = labels
-        self.window = window
+        self.span = span
         self.device = device
         self._ends = torch.as_tensor(compact_ends, device=device)
-        self._offsets = torch.arange(-window + 1, 1, device=device)  # oldest first
+        self._offsets = torch.arange(-span + 1, 1, device=device)  # oldest first
         self._force = torch.as_tensor(labels.force_n, dtype=torch.float32, device=device)
         self._position = torch.as_tensor(labels.position_mm, dtype=torch.float32, device=device)
         self._contact = torch.as_tensor(labels.contact, device=device)
@@ -270,7 +272,7 @@ class DeviceWindows:
         idx = index_on(self.device, index)
         rows = self._ends[idx][:, None] + self._offsets[None]  # (B, T) frame rows
         frames = self.store.frames.index_select(0, rows.reshape(-1))  # (B*T, S, S, 3)
-        frames = frames.view(len(idx), self.window, *frames.shape[1:])  # (B, T, S, S, 3)
+        frames = frames.view(len(idx), self.span, *frames.shape[1:])  # (B, span, S, S, 3)
         targets = label_maps(
             self._force[idx], self._position[idx], self._contact[idx], self.labels.geometry
         )

@@ -1,0 +1,63 @@
+"""Where inference runs: CPU threads, the cache folder, and a key for this machine.
+
+Compiled packages and the auto-selection's timings hold only for the machine and
+library versions they were made with; :func:`machine_key` names those.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import platform
+from pathlib import Path
+
+import torch
+
+
+def default_cache_dir() -> Path:
+    """``~/.cache/beadsight``: exported models, compiled packages, auto decisions."""
+    return Path.home() / ".cache" / "beadsight"
+
+
+def default_threads() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def importable(module: str) -> bool:
+    """True when ``module`` is installed (without importing it)."""
+    return importlib.util.find_spec(module) is not None
+
+
+def cpu_name() -> str:
+    """The CPU's model name, e.g. "Intel(R) Xeon(R) Platinum 8480+"."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_key() -> str:
+    """Short hash of what makes timings and compiled code machine-specific."""
+    parts = [platform.machine(), cpu_name(), str(default_threads()), torch.__version__]
+    for name in ("onnxruntime", "openvino"):
+        try:
+            parts.append(f"{name}={__import__(name).__version__}")
+        except ImportError:
+            parts.append(f"{name}=none")
+    try:
+        import openvino as ov
+
+        parts.append(",".join(ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")))
+    except ImportError:
+        pass
+    if torch.cuda.is_available():
+        parts.append(torch.cuda.get_device_name(0))
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]

@@ -1,0 +1,149 @@
+"""How a :class:`~beadsight.live.sensor.LiveSensor` runs: :class:`LiveSettings`.
+
+One frozen dataclass, validated when made, for everything but the checkpoint and the
+source: how the predictor's runtime is chosen (passed to
+:meth:`~beadsight.inference.predictor.PressurePredictor.from_checkpoint`), how frames
+become model input (:mod:`beadsight.inference.frames`), the source's options, and the
+fault timing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from beadsight._compat import deprecated
+from beadsight.config import ConfigError
+from beadsight.inference.backend import BACKENDS, PRECISIONS
+from beadsight.inference.frames import check_preprocess
+from beadsight.inference.predictor import PredictorSettings
+
+FIRST_FRAME_TIMEOUT_S = 15.0  # a source that gives no frame this long after opening fails
+NO_SIGNAL_AFTER_S = 1.0  # no new frame for this long -> state "no_signal"
+RECONNECT_INITIAL_S = 0.5  # first wait before reopening a lost camera; doubles per try
+RECONNECT_MAX_S = 8.0  # longest wait between reopening attempts
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """Settings of live sensing (everything but the checkpoint and the source)."""
+
+    backend: str = "auto"  # auto | torch | compile | onnx | openvino | cuda
+    precision: str = "auto"  # auto | fp32 | bf16
+    device: str | None = None  # torch device of the torch/compile/cuda backends
+    exported_model: str | None = None  # an exported .onnx / OpenVINO .xml of the checkpoint
+    threads: int | None = None  # CPU threads of the backend (None: all this process may use)
+    preprocess: str = "auto"  # auto | none | reference | reference-linear | calibration .json
+    source_fps: float | None = None  # simulator rate (None: 30) / rate asked of a camera
+    loop: bool = False  # restart a video file at its end
+    seed: int = 0  # the simulator's seed
+    predictor: PredictorSettings = field(default_factory=PredictorSettings)  # gaps, contact
+    first_frame_timeout_s: float = FIRST_FRAME_TIMEOUT_S  # no first frame this long: error
+    no_signal_after_s: float = NO_SIGNAL_AFTER_S  # no new frame this long: state no_signal
+    reconnect_initial_s: float = RECONNECT_INITIAL_S  # first wait before reopening a camera
+    reconnect_max_s: float = RECONNECT_MAX_S  # longest wait; the wait doubles per attempt
+    max_readings: int | None = None  # end sensing (state "ended") after this many readings
+
+    def __post_init__(self) -> None:
+        if self.backend not in ("auto", *BACKENDS):
+            raise ConfigError(f"backend must be 'auto' or one of {BACKENDS}, got {self.backend!r}")
+        if self.precision not in ("auto", *PRECISIONS):
+            raise ConfigError(
+                f"precision must be 'auto' or one of {PRECISIONS}, got {self.precision!r}"
+            )
+        object.__setattr__(self, "preprocess", _checked(check_preprocess, self.preprocess))
+        if self.exported_model is not None:
+            object.__setattr__(self, "exported_model", str(self.exported_model))
+        if not isinstance(self.predictor, PredictorSettings):
+            raise ConfigError(f"predictor must be PredictorSettings, got {self.predictor!r}")
+        for name in ("first_frame_timeout_s", "no_signal_after_s", "reconnect_initial_s"):
+            _positive(name, getattr(self, name))
+        _positive("reconnect_max_s", self.reconnect_max_s)
+        if self.reconnect_max_s < self.reconnect_initial_s:
+            raise ConfigError(
+                f"reconnect_max_s ({self.reconnect_max_s}) must not be below "
+                f"reconnect_initial_s ({self.reconnect_initial_s})"
+            )
+        if self.source_fps is not None:
+            _positive("source_fps", self.source_fps)
+        for name in ("max_readings", "threads"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or int(value) != value or value < 1):
+                raise ConfigError(f"{name} must be an integer >= 1 or None, got {value!r}")
+
+    def predictor_arguments(self) -> dict[str, Any]:
+        """Keyword arguments of ``PressurePredictor.from_checkpoint`` (after the checkpoint)."""
+        return {
+            "backend": self.backend,
+            "precision": self.precision,
+            "device": self.device,
+            "exported_model": self.exported_model,
+            "threads": self.threads,
+            "settings": self.predictor,
+        }
+
+
+def _checked(check, value):
+    try:
+        return check(value)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def _positive(name: str, value: float) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise ConfigError(f"{name} must be a number > 0, got {value!r}")
+    if not math.isfinite(value):
+        raise ConfigError(f"{name} must be finite, got {value!r}")
+
+
+# --- beadsight 0.1's LiveSensor keywords --------------------------------------------
+_RENAMED = {"fps": "source_fps"}
+_SAME = ("backend", "precision", "preprocess", "loop", "seed", "first_frame_timeout_s",
+         "no_signal_after_s", "max_readings")  # fmt: skip
+
+
+def legacy_settings(
+    settings: LiveSettings | str | None, args: tuple, kwargs: dict[str, Any]
+) -> LiveSettings:
+    """``settings`` with the 0.1 keywords of ``LiveSensor`` applied (deprecated): backend
+    and precision (also positional), preprocess (None: auto), fps, loop, seed,
+    predictor_options, first_frame_timeout_s, no_signal_after_s, reconnect_backoff_s,
+    max_readings."""
+    if isinstance(settings, str):  # 0.1: LiveSensor(checkpoint, source, backend, precision)
+        args, settings = (settings, *args), None
+    if len(args) > 2:
+        raise TypeError(f"LiveSensor: too many positional arguments {args!r}")
+    kwargs = {**dict(zip(("backend", "precision"), args, strict=False)), **kwargs}
+    if not kwargs:
+        return settings or LiveSettings()
+    deprecated("LiveSensor(..., backend=..., fps=..., ...)", "LiveSensor(..., LiveSettings(...))")
+    changes: dict[str, Any] = {}
+    for key, value in kwargs.items():
+        if key in _SAME:
+            changes[key] = "auto" if key == "preprocess" and value is None else value
+        elif key in _RENAMED:
+            changes[_RENAMED[key]] = value
+        elif key == "reconnect_backoff_s":
+            changes["reconnect_initial_s"], changes["reconnect_max_s"] = value
+        elif key == "predictor_options":
+            changes.update(_predictor_options(settings or LiveSettings(), dict(value or {})))
+        else:
+            raise TypeError(f"LiveSensor got an unexpected keyword argument {key!r}")
+    return dataclasses.replace(settings or LiveSettings(), **changes)
+
+
+def _predictor_options(base: LiveSettings, options: dict[str, Any]) -> dict[str, Any]:
+    """0.1's ``predictor_options`` (PressurePredictor keywords) as LiveSettings fields."""
+    out: dict[str, Any] = {}
+    for key in ("device", "exported_model"):
+        if key in options:
+            out[key] = options.pop(key)
+    backend_options = options.pop("backend_options", None) or {}
+    if "threads" in backend_options:
+        out["threads"] = backend_options["threads"]
+    if options:
+        out["predictor"] = dataclasses.replace(base.predictor, **options)
+    return out

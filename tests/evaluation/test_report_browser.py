@@ -1,0 +1,127 @@
+"""The demo and evaluate reports in a real headless Chromium, opened from disk (file://):
+the metrics table, every image loaded, every caption, the folded model card, and no request
+that leaves the report folder. Saves full-page screenshots to artifacts/ (printed)."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+from browser_helpers import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
+
+from beadsight.checkpoint import CheckpointError, shipped_model_path
+from beadsight.cli import main
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not CHROMIUM.exists(), reason="chromium is not installed"),
+]
+
+PAPER_ROWS = (
+    "pressure MAE (kPa)",
+    "total-force error (%)",
+    "centre of pressure (mm)",
+    "contact IoU (0..1)",
+    "worst 4x4 region MAE (kPa)",
+)
+
+
+@pytest.fixture(scope="module")
+def shipped(tmp_path_factory):
+    """The shipped model and its card, copied (a checkpoint with a card beside it)."""
+    try:
+        path = shipped_model_path()
+    except CheckpointError as e:
+        pytest.skip(str(e))
+    folder = tmp_path_factory.mktemp("model")
+    shutil.copy(path, folder / "sim_model.pt")
+    shutil.copy(path.with_suffix(".md"), folder / "sim_model.md")
+    return folder / "sim_model.pt"
+
+
+@pytest.fixture(scope="module")
+def reports(shipped, tmp_path_factory):
+    """{"demo": folder, "evaluate": folder}: the demo, then evaluate on the demo's data."""
+    root = tmp_path_factory.mktemp("reports")
+    demo = root / "demo"
+    argv = ["demo", "--checkpoint", str(shipped), "--out", str(demo), "--presses", "3",
+            "--max-frames", "90", "--animation-frames", "16", "--keep-data", "--device", "cpu",
+            "--no-progress"]  # fmt: skip
+    assert main(argv) == 0
+    evaluation = root / "evaluate"
+    argv = ["evaluate", "--checkpoint", str(shipped), "--data", str(demo / "heldout.h5"),
+            "--split", "all", "--out", str(evaluation), "--max-frames", "60", "--baselines",
+            "--device", "cpu", "--no-progress"]  # fmt: skip
+    assert main(argv) == 0
+    return {"demo": demo, "evaluate": evaluation}
+
+
+@pytest.fixture(scope="module")
+def browser():
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield browser
+        browser.close()
+
+
+@pytest.mark.parametrize(
+    "kind, figures",
+    [
+        ("demo", ["animation.gif", "examples.png", "force_traces.png", "region_error.png"]),
+        ("evaluate", ["examples.png", "force_traces.png", "region_error.png"]),
+    ],
+)
+def test_report_in_chromium(reports, browser, kind, figures):
+    folder = reports[kind]
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    requests, errors = [], []
+    page.on("request", lambda r: requests.append(r.url))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto((folder / "index.html").as_uri(), wait_until="load")
+
+    assert page.title() and page.locator("main > h1").inner_text()
+    assert len(page.locator("p.summary").inner_text()) > 100
+    # the metrics table: the paper's rows, this run beside the paper and both baselines
+    table = page.locator("table.metrics")
+    heads = table.locator("thead th").all_inner_texts()
+    assert heads == ["metric", "this run", "paper", "baseline: zero", "baseline: mean_gt"]
+    rows = table.locator("tbody th").all_inner_texts()
+    assert list(PAPER_ROWS) == rows[: len(PAPER_ROWS)]
+    marks = table.locator("td.run .mark").all_inner_texts()
+    assert len(marks) == len(PAPER_ROWS) and set(marks) <= {"better", "worse", "= paper"}
+    # every image is loaded from the folder, and every figure has its caption
+    images = page.locator("figure img")
+    assert [images.nth(i).get_attribute("src") for i in range(images.count())] == figures
+    sizes = page.evaluate(
+        "[...document.images].map(i => [i.complete, i.naturalWidth, i.naturalHeight])"
+    )
+    assert all(done and w > 0 and h > 0 for done, w, h in sizes), sizes
+    captions = page.locator("figure figcaption").all_inner_texts()
+    assert len(captions) == len(figures)
+    assert all(text.startswith("Figure ") and len(text) > 150 for text in captions), captions
+    assert all("kPa" in text or "(N" in text for text in captions)
+    # the model card: after the figures, folded, and rendered from Markdown when opened
+    card = page.locator("details")
+    assert card.count() == 1 and not card.evaluate("d => d.open")
+    assert not page.locator("details .card h3").is_visible()
+    page.screenshot(path=str(_shot(kind)), full_page=True)
+    page.click("details > summary")
+    assert page.locator("details .card h3").is_visible()
+    assert page.locator("details .card pre code").count() > 0  # the card's code blocks
+    # raw files are linked, and exist
+    links = page.locator("ul.files a").evaluate_all("as => as.map(a => a.getAttribute('href'))")
+    assert {"metrics.json", "predictions.h5"} <= set(links)
+    assert all((folder / href).is_file() for href in links)
+    # nothing was loaded from outside the report folder, and nothing failed
+    assert requests and all(url.startswith(folder.as_uri()) for url in requests), requests
+    assert errors == []
+    page.close()
+
+
+def _shot(kind: str):
+    ARTIFACTS.mkdir(exist_ok=True)
+    path = ARTIFACTS / f"report-{kind}.png"
+    print(f"screenshot: {path}")
+    return path
