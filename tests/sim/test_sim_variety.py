@@ -326,3 +326,31 @@ def test_colour_temperature_runs_warm_to_cold():
     blue_over_red = [b / r for r, _, b in rgb]
     assert blue_over_red == sorted(blue_over_red)
     assert all(math.isclose(max(c), 1.0) for c in rgb)
+
+
+def test_training_on_a_variety_dataset_resumes_where_it_stopped(tmp_path):
+    """A base-model run spans sessions: stopped and resumed, it ends where an
+    uninterrupted run ends, on the same multi-build dataset."""
+    import torch
+
+    from beadsight.checkpoint import read_checkpoint_file
+
+    data = simulate_dataset(
+        tmp_path / "v.h5", presses=3, seed=6, image_size=32, pouches=3, variety="train",
+        progress=False,
+    )  # fmt: skip
+    small = ["--width", "2", "--batch-size", "4", "--threads", "1", "--no-progress"]
+    small += ["--device", "cpu", "--loader", "host", "--num-workers", "0"]
+
+    def train(out, steps, *extra):
+        args = ["train", "--data", str(data), "--out", str(out), "--steps", str(steps)]
+        assert main([*args, *small, *extra]) == 0
+        return read_checkpoint_file(out / "last.pt")
+
+    whole = train(tmp_path / "whole", 4)
+    train(tmp_path / "parts", 2)
+    resumed = train(tmp_path / "parts", 4, "--resume")
+    assert resumed["step"] == whole["step"] == 4
+    assert whole["state_dict"].keys() == resumed["state_dict"].keys()
+    for name, tensor in whole["state_dict"].items():
+        assert torch.equal(tensor, resumed["state_dict"][name]), name
