@@ -32,20 +32,16 @@ from typing import Any
 import numpy as np
 
 from beadsight.errors import ConfigError
-from beadsight.sim.config import SimConfig
+from beadsight.sim.config import MIXED_TINTS_RGB, SimConfig
 from beadsight.sim.light import colour_temperature_rgb
 
 SPLITS = ("train", "heldout")
 GROUPS = ("pouch", "light", "camera", "image")
 
-# Tints a bag of water beads can hold (linear RGB multipliers); a build uses a few.
+# Tints a bag of water beads can hold (linear RGB multipliers): the reference pouch's
+# mixed tints and three more; a build uses a few.
 BEAD_PALETTE_RGB = (
-    (0.93, 0.95, 1.00),  # clear
-    (0.62, 0.80, 1.00),  # blue
-    (0.66, 0.98, 0.72),  # green
-    (1.00, 0.72, 0.80),  # pink
-    (1.00, 0.86, 0.55),  # amber
-    (0.82, 0.72, 1.00),  # violet
+    *MIXED_TINTS_RGB,
     (1.00, 0.66, 0.60),  # red
     (0.62, 0.95, 0.98),  # cyan
     (0.98, 0.98, 0.62),  # yellow
