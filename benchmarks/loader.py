@@ -15,7 +15,7 @@ and prints each loader's rate as a multiple of the training rate (target: >= 10x
 
 Usage::
 
-    .venv/bin/python benchmarks/loader.py [--device cpu|cuda] [--presses 20] [--frames 150]
+    .venv/bin/python benchmarks/loader.py [--device cpu|cuda] [--presses 20] [--press-frames 150]
         [--batch 8] [--workers 0 2] [--json]
 """
 
@@ -30,12 +30,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from train_speed import DTYPES, make_model, sync  # sibling script (benchmarks/ is on sys.path)
+from train_speed import DTYPES, make_step, sync  # sibling script (benchmarks/ is on sys.path)
 
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import DatasetWriter, open_dataset
 from beadsight.data.splits import window_ends
-from beadsight.train.step import optimizer_step
 from beadsight.train.windows import (
     DeviceFrames,
     DeviceWindows,
@@ -96,22 +95,7 @@ def loader_rate(loader: WindowLoader, max_batches: int, device: torch.device) ->
 
 
 def train_rate(batches: list, device: torch.device, precision: str, args) -> float:
-    model = make_model(args, device)
-    module = model.module.train()
-    optimizer = torch.optim.AdamW(module.net.parameters(), lr=1e-4, weight_decay=1e-4)
-
-    def step(frames, targets):
-        return optimizer_step(
-            module,
-            module.net,
-            optimizer,
-            frames,
-            targets,
-            output_scale_kpa=1.2,
-            noise_std=0.05,
-            autocast_dtype=DTYPES[precision],
-        )
-
+    step = make_step(args, device, precision)
     step(*batches[0])  # warm-up
     sync(device)
     start = time.perf_counter()
@@ -128,7 +112,7 @@ def main() -> None:
     )
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--presses", type=int, default=20)
-    p.add_argument("--frames", type=int, default=150, help="frames per press")
+    p.add_argument("--press-frames", type=int, default=150, help="frames per press")
     p.add_argument("--size", type=int, default=256, help="dataset image size (px)")
     p.add_argument("--frames", type=int, default=15, help="frames per window (stride 1)")
     p.add_argument("--width", type=int, default=16, help="U-Net width for the training rate")
@@ -151,7 +135,7 @@ def main() -> None:
         path = args.dataset
         t = time.perf_counter()
         if path is None:
-            path = write_dataset(Path(tmp) / "bench.h5", args.presses, args.frames, args.size, 0)
+            path = write_dataset(Path(tmp) / "bench.h5", args.presses, args.press_frames, args.size, 0)
         write_s = time.perf_counter() - t
         result = run(args, path, device)
         result["dataset_write_s"] = write_s

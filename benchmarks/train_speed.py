@@ -64,14 +64,13 @@ def make_batch(args, batch: int, device: torch.device) -> tuple[torch.Tensor, to
     return frames.to(device), torch.from_numpy(targets).to(device)
 
 
-def train_rate(args, device: torch.device, precision: str) -> float:
-    model = make_model(args, device)
-    module = model.module.train()
+def make_step(args, device: torch.device, precision: str):
+    """One AdamW training step of a fresh model: ``step(frames, targets) -> loss``."""
+    module = make_model(args, device).module.train()
     optimizer = torch.optim.AdamW(module.net.parameters(), lr=1e-4, weight_decay=1e-4)
     scaler = torch.amp.GradScaler("cuda") if precision == "fp16" else None
-    frames, targets = make_batch(args, args.batch, device)
 
-    def step():
+    def step(frames, targets):
         return optimizer_step(
             module,
             module.net,
@@ -83,6 +82,16 @@ def train_rate(args, device: torch.device, precision: str) -> float:
             autocast_dtype=DTYPES[precision],
             scaler=scaler,
         )
+
+    return step
+
+
+def train_rate(args, device: torch.device, precision: str) -> float:
+    frames, targets = make_batch(args, args.batch, device)
+    train_step = make_step(args, device, precision)
+
+    def step():
+        return train_step(frames, targets)
 
     for _ in range(args.warmup):
         step()

@@ -32,6 +32,14 @@ TORCH = LiveSettings(backend="torch", precision="fp32")  # fast to build; "auto"
 BACKEND = {"settings": TORCH}
 
 
+def live_argv(checkpoint: Path, source: Path, *more: str) -> list[str]:
+    """``beadsight live`` arguments for ``checkpoint`` on ``source`` with fp32 torch."""
+    return ["live", "--checkpoint", str(checkpoint), "--source", str(source), *TORCH_FLAGS, *more]
+
+
+TORCH_FLAGS = ("--backend", "torch", "--precision", "fp32")
+
+
 def tiny_model(frames: int = SPAN, seed: int = 0, scale_kpa: float = 10.0) -> PressureModel:
     torch.manual_seed(seed)
     meta = CheckpointMeta(

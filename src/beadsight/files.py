@@ -43,6 +43,21 @@ class OutputExistsError(BeadSightError):
     """An output would replace an existing file (or is a folder); names it and the fix."""
 
 
+class ClosesOrAborts:
+    """A writer used as a context manager: ``close()`` when the block succeeds (the file
+    gets its final name), ``abort()`` when it raises (nothing half-written is kept under
+    the final name)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
 def refuse_existing(path: str | Path, overwrite: bool = False, flag: str = "--overwrite") -> Path:
     """Refuse to write ``path`` over anything that exists unless ``overwrite`` (never a folder)."""
     path = Path(path)

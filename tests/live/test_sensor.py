@@ -20,6 +20,7 @@ from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture
     WINDOW,
     ScriptedSource,
     StatusLog,
+    live_argv,
     no_thread_leaks,
     press_frames,
     tiny_model,
@@ -433,26 +434,8 @@ def test_cli_live_headless_writes_readings(model, presses, tmp_path):
     video = write_video(tmp_path / "v.avi", frames[:30], fps=60)
     checkpoint = model.save(tmp_path / "tiny.pt")
     out = tmp_path / "readings.h5"
-    code = main(
-        [
-            "live",
-            "--checkpoint",
-            str(checkpoint),
-            "--source",
-            str(video),
-            "--backend",
-            "torch",
-            "--precision",
-            "fp32",
-            "--no-viewer",
-            "--no-stream",
-            "--output",
-            str(out),
-            "--frames",
-            "5",
-            "--loop",  # however slow the machine is, 5 readings come
-        ]
-    )
+    more = ["--no-viewer", "--no-stream", "--output", str(out), "--frames", "5"]
+    code = main(live_argv(checkpoint, video, *more, "--loop"))  # --loop: 5 readings always come
     assert code == 0
     with open_readings(out) as rf:
         assert len(rf) == 5
@@ -462,19 +445,7 @@ def test_cli_live_headless_writes_readings(model, presses, tmp_path):
 def test_cli_live_reports_bad_source_size_as_one_line(model, tmp_path, capsys):
     video = write_video(tmp_path / "wide.avi", np.zeros((20, 48, 80, 3), np.uint8))
     checkpoint = model.save(tmp_path / "tiny.pt")
-    code = main(
-        [
-            "live",
-            "--checkpoint",
-            str(checkpoint),
-            "--source",
-            str(video),
-            "--backend",
-            "torch",
-            "--no-viewer",
-            "--no-stream",
-        ]
-    )
+    code = main(live_argv(checkpoint, video, "--no-viewer", "--no-stream"))
     assert code == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "80x48" in err[0] and "64x64" in err[0]

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from browser_helpers import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, Beadsight
-from live_helpers import press_frames, tiny_model, write_video
+from live_helpers import live_argv, press_frames, tiny_model, write_video
 
 from beadsight.live.readings import open_readings
 
@@ -31,25 +31,8 @@ def test_viewer_shows_live_readings_then_no_signal(tmp_path):
     ARTIFACTS.mkdir(exist_ok=True)
     with playwright_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        live = Beadsight(
-            "live",
-            "--checkpoint",
-            str(checkpoint),
-            "--source",
-            str(video),
-            "--backend",
-            "torch",
-            "--precision",
-            "fp32",
-            "--port",
-            "0",
-            "--stream-port",
-            "0",
-            "--record-dir",
-            str(tmp_path),
-            "--report-every",
-            "1",
-        )
+        more = ["--port", "0", "--stream-port", "0", "--record-dir", str(tmp_path)]
+        live = Beadsight(*live_argv(checkpoint, video, *more, "--report-every", "1"))
         proc = live.proc
         try:
             url = live.wait_line(r"viewer: (http://\S+)", 60).group(1)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import logging
 import sys
 import traceback
@@ -42,19 +43,24 @@ class Commands:
     def add(
         self,
         name: str,
-        *,
-        help: str,
-        arguments: Callable[[argparse.ArgumentParser], None],
         run: Handler | None = None,
+        arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+        *,
+        help: str | None = None,
         description: str | None = None,
     ) -> None:
         """Register ``beadsight NAME``: ``arguments(parser)`` adds its options when needed,
         ``run(args)`` runs it (None: ``arguments`` sets ``func`` itself, e.g. for nested
-        subcommands)."""
-        parser = self._subparsers.add_parser(name, help=help, description=description or help)
+        subcommands). The help line is the first line of ``run``'s docstring and the
+        description its whole text, unless given."""
+        first, description_text = _doc_parts(run)
+        help = help or first
+        parser = self._subparsers.add_parser(
+            name, help=help, description=description or description_text or help
+        )
         if run is not None:
             parser.set_defaults(func=run)
-        self._pending[name] = (parser, arguments)
+        self._pending[name] = (parser, arguments or (lambda parser: None))
 
     @property
     def names(self) -> list[str]:
@@ -66,6 +72,16 @@ class Commands:
         if entry is not None:
             parser, arguments = entry
             arguments(parser)
+
+
+def _doc_parts(run: Handler | None) -> tuple[str, str]:
+    """(help line, description) from a command function's docstring: the first line as
+    argparse help lines are written (lower case, no full stop), and the whole text."""
+    doc = inspect.cleandoc(getattr(run, "__doc__", None) or "")
+    if not doc:
+        return "", ""
+    first = doc.split("\n\n")[0].replace("\n", " ").rstrip(".")
+    return first[:1].lower() + first[1:], doc
 
 
 def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentParser:

@@ -10,28 +10,9 @@ from pathlib import Path
 
 
 def register(commands) -> None:
-    commands.add(
-        "info",
-        help="summarise a dataset or a checkpoint (ours or the reference's)",
-        arguments=_info_arguments,
-        run=_info,
-    )
-    commands.add(
-        "import-reference",
-        help="convert a reference processed HDF5 file to this project's format",
-        description="Reference files are also accepted directly by train, evaluate and predict; "
-        "importing stores RGB frames, newtons, float64 timestamps and press segmentation.",
-        arguments=_import_arguments,
-        run=_import,
-    )
-    commands.add(
-        "export-dataset",
-        help="write a dataset in the reference's processed HDF5 layout",
-        description="Write DATA with the names, dtypes, units (grams), BGR frames and "
-        "attributes of the reference's raw_data_process.py, for the reference's own scripts.",
-        arguments=_export_arguments,
-        run=_export,
-    )
+    commands.add("info", _info, _info_arguments)
+    commands.add("import-reference", _import, _import_arguments)
+    commands.add("export-dataset", _export, _export_arguments)
 
 
 def _info_arguments(p: argparse.ArgumentParser) -> None:
@@ -79,6 +60,7 @@ def dataset_summary(path: str) -> dict:
 
 
 def _info(args: argparse.Namespace) -> int:
+    """Summarise a dataset or a checkpoint (ours or the reference's)."""
     import h5py
 
     from beadsight.checkpoint import checkpoint_summary, looks_like_checkpoint
@@ -105,6 +87,11 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
+    """Convert a reference processed HDF5 file to this project's format.
+
+    Reference files are also accepted directly by train, evaluate and predict; importing
+    stores RGB frames, newtons, float64 timestamps and press segmentation.
+    """
     from beadsight.data.reference_file import import_reference
 
     out = import_reference(args.source, args.out)
@@ -113,6 +100,11 @@ def _import(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
+    """Write a dataset in the reference's processed HDF5 layout.
+
+    Write DATA with the names, dtypes, units (grams), BGR frames and attributes of the
+    reference's raw_data_process.py, for the reference's own scripts.
+    """
     from beadsight.data.reference_file import export_reference
 
     out = export_reference(

@@ -7,22 +7,8 @@ from pathlib import Path
 
 
 def register(commands) -> None:
-    commands.add(
-        "evaluate",
-        help="metrics of a checkpoint on a dataset split, beside the paper's figures",
-        description="Run a checkpoint over a dataset split; write metrics.json, predictions.h5 "
-        "and PNG plots to --out and print the metrics beside the paper's.",
-        arguments=_evaluate_arguments,
-        run=run_evaluate,
-    )
-    commands.add(
-        "predict",
-        help="pressure maps, force and centre of pressure for every frame of a recording",
-        description="Run a checkpoint over a dataset or a video file and write per-frame "
-        "pressure maps (kPa), total force (N), centre of pressure (mm) and timestamps to HDF5.",
-        arguments=_predict_arguments,
-        run=run_predict,
-    )
+    commands.add("evaluate", run_evaluate, _evaluate_arguments)
+    commands.add("predict", run_predict, _predict_arguments)
 
 
 def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
@@ -88,6 +74,11 @@ def _batch_and_device(p: argparse.ArgumentParser, batch_size: int) -> None:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
+    """Metrics of a checkpoint on a dataset split, beside the paper's figures.
+
+    Run a checkpoint over a dataset split; write metrics.json, predictions.h5 and PNG
+    plots to --out and print the metrics beside the paper's.
+    """
     from beadsight.evaluation.evaluate import evaluate
     from beadsight.evaluation.metrics import format_metrics_table
 
@@ -120,6 +111,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 
 def run_predict(args: argparse.Namespace) -> int:
+    """Pressure maps, force and centre of pressure for every frame of a recording.
+
+    Run a checkpoint over a dataset or a video file and write per-frame pressure maps
+    (kPa), total force (N), centre of pressure (mm) and timestamps to HDF5.
+    """
     from beadsight.evaluation.predict import predict_recording, summarize_predictions
 
     out = predict_recording(

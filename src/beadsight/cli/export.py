@@ -7,14 +7,7 @@ import json
 
 
 def register(commands) -> None:
-    commands.add(
-        "export",
-        help="export a checkpoint to ONNX or OpenVINO (uint8 frames in, kPa out)",
-        description="Export a checkpoint with its normalisation and metadata; the file is "
-        "checked against torch and removed if it disagrees.",
-        arguments=_export_arguments,
-        run=_export,
-    )
+    commands.add("export", _export, _export_arguments)
     commands.add("bench", help="performance measurements", arguments=_bench_arguments)
 
 
@@ -76,6 +69,11 @@ def _backend_options(args: argparse.Namespace) -> dict:
 
 
 def _export(args: argparse.Namespace) -> int:
+    """Export a checkpoint to ONNX or OpenVINO (uint8 frames in, kPa out).
+
+    Export a checkpoint with its normalisation and metadata; the file is checked against
+    torch and removed if it disagrees.
+    """
     from beadsight.inference.export import export_model
 
     report = export_model(args.checkpoint, args.format, args.out, args.precision)

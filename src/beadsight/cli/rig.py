@@ -92,23 +92,8 @@ PROCESS_FLAGS = (
 
 
 def register(commands) -> None:
-    commands.add(
-        "collect",
-        help="press the finger onto the sensor following a plan and record everything",
-        description="Run a press plan on the rig (real devices, or --virtual for the simulated "
-        "rig) and record video, scale readings and printer commands into a raw recording "
-        "folder. Ctrl-C stops cleanly (finger lifted, files closed); --resume continues.",
-        arguments=_collect_arguments,
-        run=_collect,
-    )
-    commands.add(
-        "process",
-        help="turn a raw recording (this project's or the reference's) into a dataset",
-        description="Align frames with the force and printer logs, preprocess the images and "
-        "write an HDF5 dataset plus a QA summary (<out>.qa.json, <out>.qa.png).",
-        arguments=_process_arguments,
-        run=_process,
-    )
+    commands.add("collect", _collect, _collect_arguments)
+    commands.add("process", _process, _process_arguments)
 
 
 # --- collect ---------------------------------------------------------------------------------
@@ -164,6 +149,12 @@ def _collect_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _collect(args: argparse.Namespace) -> int:
+    """Press the finger onto the sensor following a plan and record everything.
+
+    Run a press plan on the rig (real devices, or --virtual for the simulated rig) and
+    record video, scale readings and printer commands into a raw recording folder.
+    Ctrl-C stops cleanly (finger lifted, files closed); --resume continues.
+    """
     from beadsight.errors import BeadSightError
     from beadsight.rig.collect import (
         collect_with_hardware,
@@ -242,6 +233,11 @@ def _process_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _process(args: argparse.Namespace) -> int:
+    """Turn a raw recording (this project's or the reference's) into a dataset.
+
+    Align frames with the force and printer logs, preprocess the images and write an
+    HDF5 dataset plus a QA summary (<out>.qa.json, <out>.qa.png).
+    """
     from beadsight.cli.options import field_values
     from beadsight.data.process import ProcessConfig, process_recording, qa_paths
 

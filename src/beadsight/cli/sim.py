@@ -40,25 +40,8 @@ DEMO_FLAGS = (
 
 
 def register(commands) -> None:
-    commands.add(
-        "simulate",
-        help="simulate calibration presses on a virtual BeadSight and write a dataset",
-        description="Runs the reference press pattern (F200 descent, 1 s dwell, F700 rise) on "
-        "the simulated sensor and records frames, the simulated scale's force and the "
-        "commanded printer position, like a real calibration session.",
-        arguments=_simulate_arguments,
-        run=_simulate,
-    )
-    commands.add(
-        "demo",
-        help="the shipped model on held-out simulated presses: metrics, plots, animation",
-        description="Simulates presses the shipped model never saw, runs it, evaluates it "
-        "against the paper's metrics and two baselines, and writes a report folder "
-        "(index.html, metrics.json, plots, animation.gif). --train trains a small model "
-        "from scratch first and says how long a full run would take.",
-        arguments=_demo_arguments,
-        run=_demo,
-    )
+    commands.add("simulate", _simulate, _simulate_arguments)
+    commands.add("demo", _demo, _demo_arguments)
 
 
 def _simulate_arguments(p: argparse.ArgumentParser) -> None:
@@ -95,6 +78,12 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    """Simulate calibration presses on a virtual BeadSight and write a dataset.
+
+    Runs the reference press pattern (F200 descent, 1 s dwell, F700 rise) on the
+    simulated sensor and records frames, the simulated scale's force and the
+    commanded printer position, like a real calibration session.
+    """
     from beadsight.cli.options import given
     from beadsight.sim.dataset import simulate_dataset
 
@@ -122,6 +111,13 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
+    """The shipped model on held-out simulated presses: metrics, plots, animation.
+
+    Simulates presses the shipped model never saw, runs it, evaluates it against the
+    paper's metrics and two baselines, and writes a report folder (index.html,
+    metrics.json, plots, animation.gif). --train trains a small model from scratch
+    first and says how long a full run would take.
+    """
     from beadsight.cli.options import field_values
     from beadsight.demo.config import DemoConfig
     from beadsight.demo.run import run_demo

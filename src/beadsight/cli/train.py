@@ -50,15 +50,7 @@ TRAIN_FLAGS = (
 
 
 def register(commands) -> None:
-    commands.add(
-        "train",
-        help="train a pressure model on a dataset",
-        description="Train the BeadSight U-Net (reference recipe by default) into a run folder "
-        "with config.json, split.json, metrics.jsonl, last.pt and best.pt. Settings: code "
-        "defaults < --config FILE.toml < flags. Under torchrun it trains data-parallel.",
-        arguments=_arguments,
-        run=_train,
-    )
+    commands.add("train", _train, _arguments)
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
@@ -93,6 +85,12 @@ def _choices(choices: dict, name: str) -> dict:
 
 
 def _train(args: argparse.Namespace) -> int:
+    """Train a pressure model on a dataset.
+
+    Train the BeadSight U-Net (reference recipe by default) into a run folder with
+    config.json, split.json, metrics.jsonl, last.pt and best.pt. Settings: code
+    defaults < --config FILE.toml < flags. Under torchrun it trains data-parallel.
+    """
     from beadsight.cli.options import field_values
     from beadsight.train.config import TrainConfig, resolve_train_config
     from beadsight.train.trainer import train

@@ -23,6 +23,7 @@ from beadsight.config import ContactThresholds, SensorGeometry
 from beadsight.data.dataset import FORMAT, FORMAT_VERSION, DatasetError
 from beadsight.data.presses import segment_presses
 from beadsight.files import (
+    ClosesOrAborts,
     WriteError,
     describe_write_failure,
     finish_partial,
@@ -34,7 +35,7 @@ SPACE_MARGIN_BYTES = 1 << 20  # free disk kept for HDF5's own allocations while 
 ROW_BYTES = 8 + 16 + 1 + 8 + 1 + 4  # force, position, valid, timestamp, contact, press_id
 
 
-class DatasetWriter:
+class DatasetWriter(ClosesOrAborts):
     """Write a dataset incrementally; safe against crashes mid-write and full disks.
 
     Data goes to ``<path>.partial`` (flushed after every :meth:`append`, so what
@@ -248,14 +249,6 @@ class DatasetWriter:
         finally:
             sys.unraisablehook = hook
 
-    def __enter__(self) -> DatasetWriter:
-        return self
-
-    def __exit__(self, exc_type, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def _is_write_failure(e: BaseException | None) -> bool:

@@ -221,10 +221,10 @@ def _onnx_file(model: PressureModel, cache_dir: Path | None) -> tuple[Path, Any]
     return write_onnx(model, Path(tmp.name) / "model.onnx"), tmp
 
 
-class OnnxBackend(Backend):
-    """ONNX Runtime on the CPU (fp32)."""
-
-    name = "onnx"
+class _ModelFileBackend(Backend):
+    """A runtime that runs an ONNX file on the CPU: the checkpoint exported to one
+    (cached under ``cache_dir/onnx``, else in a temp dir removed once loaded), or
+    ``exported_model`` as given. Subclasses load it in :meth:`_load`."""
 
     def __init__(
         self,
@@ -235,17 +235,35 @@ class OnnxBackend(Backend):
         threads: int | None = None,
     ):
         super().__init__(model, precision)
-        if precision != "fp32":
+        self._check_available()
+        path, tmp = (Path(exported_model), None) if exported_model else _onnx_file(model, cache_dir)
+        try:
+            self._load(path, int(threads or default_threads()), cache_dir)
+        finally:
+            if tmp is not None:
+                tmp.cleanup()
+        self.path = path
+
+    def _check_available(self) -> None:
+        """Raise BackendUnavailableError before any export when this runtime cannot run."""
+
+    def _load(self, path: Path, threads: int, cache_dir: Path | None) -> None:
+        raise NotImplementedError
+
+
+class OnnxBackend(_ModelFileBackend):
+    """ONNX Runtime on the CPU (fp32)."""
+
+    name = "onnx"
+
+    def _check_available(self) -> None:
+        if self.precision != "fp32":
             raise BackendUnavailableError(
                 "onnx: onnxruntime's CPU provider has no bf16 convolutions; use openvino"
             )
-        self._tmp = None
-        if exported_model is not None:
-            path = Path(exported_model)
-        else:
-            path, self._tmp = _onnx_file(model, cache_dir)
-        self.path = path
-        self.session = _open_onnx_session(path, int(threads or default_threads()))
+
+    def _load(self, path: Path, threads: int, cache_dir: Path | None) -> None:
+        self.session = _open_onnx_session(path, threads)
         self._input = self.session.get_inputs()[0].name
 
     def _run(self, window: np.ndarray) -> np.ndarray:
@@ -253,9 +271,6 @@ class OnnxBackend(Backend):
 
     def close(self) -> None:
         self.session = None
-        if self._tmp is not None:
-            self._tmp.cleanup()
-            self._tmp = None
 
 
 def openvino_supports_bf16(core: Any = None) -> bool:
@@ -268,20 +283,12 @@ def openvino_supports_bf16(core: Any = None) -> bool:
     return "BF16" in core.get_property("CPU", "OPTIMIZATION_CAPABILITIES")
 
 
-class OpenVinoBackend(Backend):
+class OpenVinoBackend(_ModelFileBackend):
     """OpenVINO on the CPU with explicit precision, threads and latency hint."""
 
     name = "openvino"
 
-    def __init__(
-        self,
-        model: PressureModel,
-        precision: str = "fp32",
-        exported_model: str | Path | None = None,
-        cache_dir: Path | None = None,
-        threads: int | None = None,
-    ):
-        super().__init__(model, precision)
+    def _load(self, path: Path, threads: int, cache_dir: Path | None) -> None:
         try:
             import openvino as ov
         except ImportError:
@@ -289,14 +296,13 @@ class OpenVinoBackend(Backend):
                 "openvino: not installed; `pip install beadsight[openvino]`"
             ) from None
         core = ov.Core()
-        if precision == "bf16" and not openvino_supports_bf16(core):
+        if self.precision == "bf16" and not openvino_supports_bf16(core):
             raise BackendUnavailableError("openvino: this CPU has no native bf16")
-        path, tmp = (Path(exported_model), None) if exported_model else _onnx_file(model, cache_dir)
         ov_model = core.read_model(str(path))
         ov_model.reshape({ov_model.inputs[0]: list(self._shape)})
         config = {
-            "INFERENCE_PRECISION_HINT": "bf16" if precision == "bf16" else "f32",
-            "INFERENCE_NUM_THREADS": int(threads or default_threads()),
+            "INFERENCE_PRECISION_HINT": "bf16" if self.precision == "bf16" else "f32",
+            "INFERENCE_NUM_THREADS": threads,
             "PERFORMANCE_HINT": "LATENCY",
             "NUM_STREAMS": 1,
         }
@@ -304,8 +310,6 @@ class OpenVinoBackend(Backend):
             (Path(cache_dir) / "openvino").mkdir(parents=True, exist_ok=True)
             config["CACHE_DIR"] = str(Path(cache_dir) / "openvino")
         self.compiled = core.compile_model(ov_model, "CPU", config)
-        if tmp is not None:
-            tmp.cleanup()
         self.request = self.compiled.create_infer_request()
         self.config = config
 

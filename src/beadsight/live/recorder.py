@@ -28,12 +28,15 @@ from typing import Any
 
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.files import (
+    ClosesOrAborts,
+    OutputExistsError,
     WriteError,
-    describe_os_error,
+    describe_write_failure,
     finish_partial,
     free_bytes,
     os_errors_as_write_errors,
     partial_path,
+    refuse_existing,
 )
 
 logger = logging.getLogger(__name__)
@@ -43,37 +46,17 @@ RECORDER_QUEUE_SIZE = 3000  # ~100 s at 30 Hz of readings waiting for the disk
 RECORD_NAME = "beadsight-%Y%m%d-%H%M%S"  # time.strftime pattern of the Record button's files
 
 
-class OutputExistsError(BeadSightError):
-    """A recording would replace an existing file."""
-
-
 def check_recording_target(path: Path, overwrite: bool) -> Path:
     """Refuse ``path`` if it (or its ``.partial``) exists and not ``overwrite``; return the
     ``.partial`` path the recording is written to."""
     partial = partial_path(path)
-    if path.is_dir():
-        raise OutputExistsError(f"{path}: is a folder; give a file name (.h5 or .mcap)")
-    if not overwrite:
-        for p, what in (
-            (path, "already exists"),
-            (partial, "exists (left by a recording that did not finish?)"),
-        ):
-            if p.exists() or p.is_symlink():
-                raise OutputExistsError(
-                    f"{p}: {what}; choose another file name, move it away, or replace it "
-                    "(--overwrite)"
-                )
+    refuse_existing(path, overwrite)
+    if (partial.exists() or partial.is_symlink()) and not overwrite:
+        raise OutputExistsError(
+            f"{partial}: exists (left by a recording that did not finish?); move it away, or "
+            "pass --overwrite to replace it"
+        )
     return partial
-
-
-def describe_write_failure(e: BaseException) -> str:
-    """A short cause of a failed write by any library ('disk full', ...)."""
-    if isinstance(e, OSError) and e.errno is not None:
-        return describe_os_error(e)
-    text = str(e)
-    if "No space left" in text or "errno = 28" in text:  # HDF5 reports ENOSPC as text
-        return "disk full"
-    return text.splitlines()[0] if text else type(e).__name__
 
 
 def unique_recording_path(folder: str | Path, suffix: str = ".h5") -> Path:
@@ -88,7 +71,7 @@ def unique_recording_path(folder: str | Path, suffix: str = ".h5") -> Path:
     raise OutputExistsError(f"{folder}: no free name for a recording starting {stem}")
 
 
-class PartialWriter:
+class PartialWriter(ClosesOrAborts):
     """Base of the recording writers: the ``.partial`` file, refusing to replace files, and
     the clean stop on a full disk. Not thread-safe: call it from one thread.
 
@@ -193,14 +176,6 @@ class PartialWriter:
             if self._written == 0 and self._created:
                 self.partial.unlink(missing_ok=True)
 
-    def __enter__(self) -> PartialWriter:
-        return self
-
-    def __exit__(self, exc_type, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def open_recording_writer(

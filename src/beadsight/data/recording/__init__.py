@@ -30,65 +30,18 @@ muxer) and :mod:`.writer` (:class:`RecordingWriter`).
 """
 
 from beadsight.config import REFERENCE_CENTRE_XY_MM
+from beadsight.data.recording import logs
 from beadsight.data.recording.avi import MjpgAviWriter
-from beadsight.data.recording.logs import (
-    DEFAULT_FPS,
-    EVENTS_FILE,
-    FORCE_COLUMNS,
-    FORCE_FILE,
-    FRAMES_COLUMNS,
-    FRAMES_FILE,
-    JPEG_QUALITY,
-    PRINTER_COLUMNS,
-    PRINTER_FILE,
-    RAW_FORMAT,
-    RAW_FORMAT_VERSION,
-    REF_FORCE_FILE,
-    REF_PARAMS_FILE,
-    REF_PRINTER_FILE,
-    REF_VIDEO_LOG,
-    REFERENCE_RAW_FORMAT,
-    SESSION_FILE,
-    VIDEO_FOURCC,
-    VIDEO_NAME,
-    ForceLog,
-    FrameLog,
-    MoveLog,
-    Recording,
-    RecordingError,
-)
+from beadsight.data.recording.logs import *  # noqa: F403  (the names in logs.__all__)
 from beadsight.data.recording.reader import detect_format, open_recording
 from beadsight.data.recording.text import read_events, read_session
 from beadsight.data.recording.video import is_mjpg, iter_video
 from beadsight.data.recording.writer import RecordingWriter
 
 __all__ = [
-    "DEFAULT_FPS",
-    "EVENTS_FILE",
-    "FORCE_COLUMNS",
-    "FORCE_FILE",
-    "FRAMES_COLUMNS",
-    "FRAMES_FILE",
-    "JPEG_QUALITY",
-    "PRINTER_COLUMNS",
-    "PRINTER_FILE",
-    "RAW_FORMAT",
-    "RAW_FORMAT_VERSION",
+    *logs.__all__,
     "REFERENCE_CENTRE_XY_MM",
-    "REFERENCE_RAW_FORMAT",
-    "REF_FORCE_FILE",
-    "REF_PARAMS_FILE",
-    "REF_PRINTER_FILE",
-    "REF_VIDEO_LOG",
-    "SESSION_FILE",
-    "VIDEO_FOURCC",
-    "VIDEO_NAME",
-    "ForceLog",
-    "FrameLog",
     "MjpgAviWriter",
-    "MoveLog",
-    "Recording",
-    "RecordingError",
     "RecordingWriter",
     "detect_format",
     "is_mjpg",

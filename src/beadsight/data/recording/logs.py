@@ -17,6 +17,33 @@ import numpy as np
 
 from beadsight.errors import BeadSightError
 
+__all__ = [
+    "DEFAULT_FPS",
+    "EVENTS_FILE",
+    "FORCE_COLUMNS",
+    "FORCE_FILE",
+    "FRAMES_COLUMNS",
+    "FRAMES_FILE",
+    "JPEG_QUALITY",
+    "PRINTER_COLUMNS",
+    "PRINTER_FILE",
+    "RAW_FORMAT",
+    "RAW_FORMAT_VERSION",
+    "REF_FORCE_FILE",
+    "REF_PARAMS_FILE",
+    "REF_PRINTER_FILE",
+    "REF_VIDEO_LOG",
+    "REFERENCE_RAW_FORMAT",
+    "SESSION_FILE",
+    "VIDEO_FOURCC",
+    "VIDEO_NAME",
+    "ForceLog",
+    "FrameLog",
+    "MoveLog",
+    "Recording",
+    "RecordingError",
+]
+
 RAW_FORMAT = "beadsight-raw"
 RAW_FORMAT_VERSION = 1
 REFERENCE_RAW_FORMAT = "reference-raw"

@@ -18,21 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from beadsight.config import REFERENCE_CENTRE_XY_MM, REFERENCE_G_TO_N
-from beadsight.data.recording.logs import (
-    DEFAULT_FPS,
-    REF_FORCE_FILE,
-    REF_PARAMS_FILE,
-    REF_PRINTER_FILE,
-    REF_VIDEO_LOG,
-    REF_VIDEO_LOG_NAME,
-    REF_VIDEO_NAME,
-    REFERENCE_RAW_FORMAT,
-    ForceLog,
-    FrameLog,
-    MoveLog,
-    Recording,
-    RecordingError,
-)
+from beadsight.data.recording import logs
 from beadsight.data.recording.text import (
     finite_rows,
     floats,
@@ -60,42 +46,42 @@ def gcode_xy(gcode: str) -> tuple[float, float] | None:
     return None
 
 
-def open_reference(path: Path) -> Recording:
+def open_reference(path: Path) -> logs.Recording:
     """Read a reference raw recording folder (videos stay on disk)."""
     warnings: list[str] = []
-    params_path = path / REF_PARAMS_FILE
+    params_path = path / logs.REF_PARAMS_FILE
     params = read_json(params_path) if params_path.exists() else {}
     if not params:
-        warnings.append(f"{REF_PARAMS_FILE} missing; assuming the reference rig's defaults")
+        warnings.append(f"{logs.REF_PARAMS_FILE} missing; assuming the reference rig's defaults")
     centre = tuple(float(v) for v in params.get("center", REFERENCE_CENTRE_XY_MM))[:2]
-    fps = float(params.get("fps", DEFAULT_FPS))
+    fps = float(params.get("fps", logs.DEFAULT_FPS))
     frames, videos = _read_frames(path, warnings)
-    force = _read_force(path / REF_FORCE_FILE, params, warnings)
-    moves = _read_printer(path / REF_PRINTER_FILE, centre, params, warnings)
+    force = _read_force(path / logs.REF_FORCE_FILE, params, warnings)
+    moves = _read_printer(path / logs.REF_PRINTER_FILE, centre, params, warnings)
     frame_hw = probe_video(next(iter(videos.values())))[0] if videos else None
-    metadata = {"format": REFERENCE_RAW_FORMAT, "experiment_parameters": params}
+    metadata = {"format": logs.REFERENCE_RAW_FORMAT, "experiment_parameters": params}
     files = {
-        "frames": REF_VIDEO_LOG_NAME.format("{chunk}"),
-        "force": REF_FORCE_FILE,
-        "moves": REF_PRINTER_FILE,
+        "frames": logs.REF_VIDEO_LOG_NAME.format("{chunk}"),
+        "force": logs.REF_FORCE_FILE,
+        "moves": logs.REF_PRINTER_FILE,
     }
-    return Recording(
-        path, REFERENCE_RAW_FORMAT, metadata, frames, force, moves, [], videos, fps,
+    return logs.Recording(
+        path, logs.REFERENCE_RAW_FORMAT, metadata, frames, force, moves, [], videos, fps,
         frame_hw, centre, warnings, files,
     )  # fmt: skip
 
 
-def _read_frames(path: Path, warnings: list[str]) -> tuple[FrameLog, dict[int, Path]]:
-    logs = sorted(
-        ((int(m.group(1)), p) for p in path.iterdir() if (m := REF_VIDEO_LOG.search(p.name))),
+def _read_frames(path: Path, warnings: list[str]) -> tuple[logs.FrameLog, dict[int, Path]]:
+    frame_logs = sorted(
+        ((int(m.group(1)), p) for p in path.iterdir() if (m := logs.REF_VIDEO_LOG.search(p.name))),
         key=lambda kp: kp[0],
     )
-    if not logs:
-        raise RecordingError(f"{path}: no video_log_k.txt frame logs found")
+    if not frame_logs:
+        raise logs.RecordingError(f"{path}: no video_log_k.txt frame logs found")
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("chunk", "index", "t", "cam", "line")}
     videos: dict[int, Path] = {}
-    for k, log in logs:
-        video = path / REF_VIDEO_NAME.format(k)
+    for k, log in frame_logs:
+        video = path / logs.REF_VIDEO_NAME.format(k)
         if video.exists():
             videos[k] = video
         else:
@@ -111,7 +97,7 @@ def _read_frames(path: Path, warnings: list[str]) -> tuple[FrameLog, dict[int, P
         parts["cam"].append(np.where(np.isfinite(n[ok]), n[ok], -1).astype(np.int64))
         parts["line"].append(table.lines[ok])
     cat = {k: np.concatenate(v) for k, v in parts.items()}
-    frames = FrameLog(
+    frames = logs.FrameLog(
         chunk=cat["chunk"],
         index=cat["index"],
         t_unix=cat["t"],
@@ -122,7 +108,7 @@ def _read_frames(path: Path, warnings: list[str]) -> tuple[FrameLog, dict[int, P
     return frames, videos
 
 
-def _read_force(path: Path, params: dict, warnings: list[str]) -> ForceLog:
+def _read_force(path: Path, params: dict, warnings: list[str]) -> logs.ForceLog:
     table = read_table(path, 2, warnings, "no force readings")
     t = floats(table, 0, warnings, "unix_time")
     value = floats(table, 1, warnings, "value")
@@ -131,17 +117,19 @@ def _read_force(path: Path, params: dict, warnings: list[str]) -> ForceLog:
     try:
         force_n = force_to_newtons(value[ok], unit)
     except ValueError as e:
-        raise RecordingError(f"{path.parent / REF_PARAMS_FILE}: field 'force_unit': {e}") from None
+        raise logs.RecordingError(
+            f"{path.parent / logs.REF_PARAMS_FILE}: field 'force_unit': {e}"
+        ) from None
     grams = value[ok] if unit == "g" else force_n / REFERENCE_G_TO_N  # as printed by the scale
     n = int(ok.sum())
-    return ForceLog(
+    return logs.ForceLog(
         t[ok], np.full(n, np.nan), force_n, grams, np.full(n, -1, np.int64), table.lines[ok]
     )
 
 
 def _read_printer(
     path: Path, centre: tuple[float, float], params: dict, warnings: list[str]
-) -> MoveLog:
+) -> logs.MoveLog:
     """Reference printer log: x, y are the press location; x = y = -1 marks non-data moves.
 
     Whether x, y are absolute printer coordinates or offsets from the sensor centre is
@@ -165,7 +153,7 @@ def _read_printer(
     absolute_xy = xy if absolute else xy + np.asarray(centre)
     xyz[:, :2] = np.where(is_data[:, None], absolute_xy, np.nan)
     press = _press_index(xy, is_data)
-    return MoveLog(t, np.full(len(t), np.nan), xyz, offset, is_data, press, gcode, table.lines)
+    return logs.MoveLog(t, np.full(len(t), np.nan), xyz, offset, is_data, press, gcode, table.lines)
 
 
 def _command_block(text: str) -> str:

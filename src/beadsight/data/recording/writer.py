@@ -22,24 +22,8 @@ from typing import Any
 import numpy as np
 
 from beadsight import __version__
+from beadsight.data.recording import logs
 from beadsight.data.recording.avi import MjpgAviWriter
-from beadsight.data.recording.logs import (
-    EVENTS_FILE,
-    FORCE_COLUMNS,
-    FORCE_FILE,
-    FRAMES_COLUMNS,
-    FRAMES_FILE,
-    JPEG_QUALITY,
-    PRINTER_COLUMNS,
-    PRINTER_FILE,
-    RAW_FORMAT,
-    RAW_FORMAT_VERSION,
-    SESSION_FILE,
-    VIDEO_FOURCC,
-    VIDEO_NAME,
-    VIDEO_PATTERN,
-    RecordingError,
-)
 from beadsight.data.recording.text import read_json
 from beadsight.files import WriteError, atomic_write_json, describe_os_error, fsync_dir
 
@@ -122,7 +106,7 @@ class RecordingWriter:
         fps: float,
         chunk_frames: int | None = None,
         resume: bool = False,
-        jpeg_quality: int = JPEG_QUALITY,
+        jpeg_quality: int = logs.JPEG_QUALITY,
     ):
         self.path = Path(path)
         self.jpeg_quality = int(jpeg_quality)
@@ -135,18 +119,18 @@ class RecordingWriter:
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             self._write_session()
-            self._frames = _CsvFile(self.path / FRAMES_FILE, FRAMES_COLUMNS)
-            self._force = _CsvFile(self.path / FORCE_FILE, FORCE_COLUMNS)
-            self._printer = _CsvFile(self.path / PRINTER_FILE, PRINTER_COLUMNS)
-            self._events = _CsvFile(self.path / EVENTS_FILE, None)
+            self._frames = _CsvFile(self.path / logs.FRAMES_FILE, logs.FRAMES_COLUMNS)
+            self._force = _CsvFile(self.path / logs.FORCE_FILE, logs.FORCE_COLUMNS)
+            self._printer = _CsvFile(self.path / logs.PRINTER_FILE, logs.PRINTER_COLUMNS)
+            self._events = _CsvFile(self.path / logs.EVENTS_FILE, None)
         except OSError as e:
-            raise RecordingError(
+            raise logs.RecordingError(
                 f"{self.path}: cannot create recording ({describe_os_error(e)})"
             ) from None
         existing = [
             int(m.group(1))
             for p in self.path.glob("video_*.avi")
-            if (m := VIDEO_PATTERN.fullmatch(p.name))
+            if (m := logs.VIDEO_PATTERN.fullmatch(p.name))
         ]
         self._chunk = max(existing) + 1 if existing else 0
         self._in_chunk = 0
@@ -155,27 +139,27 @@ class RecordingWriter:
         self.readings_written = 0
 
     def _start_metadata(self, metadata: dict[str, Any], resume: bool) -> dict[str, Any]:
-        meta_path = self.path / SESSION_FILE
+        meta_path = self.path / logs.SESSION_FILE
         if resume:
             if not meta_path.exists():
-                raise RecordingError(f"{meta_path}: nothing to resume (no session.json)")
+                raise logs.RecordingError(f"{meta_path}: nothing to resume (no session.json)")
             previous = read_json(meta_path)
         else:
             if self.path.exists() and any(self.path.iterdir()):
-                raise RecordingError(
+                raise logs.RecordingError(
                     f"{self.path}: output folder exists and is not empty; choose a new folder "
                     "or resume the session"
                 )
             previous = {}
         now = time.time()
         base = {
-            "format": RAW_FORMAT,
-            "format_version": RAW_FORMAT_VERSION,
+            "format": logs.RAW_FORMAT,
+            "format_version": logs.RAW_FORMAT_VERSION,
             "software": {"beadsight": __version__},
             "created_unix": now,
             "camera": {"height": self.frame_hw[0], "width": self.frame_hw[1], "fps": self.fps},
             "video": {
-                "fourcc": VIDEO_FOURCC,
+                "fourcc": logs.VIDEO_FOURCC,
                 "chunk_frames": self.chunk_frames,
                 "jpeg_quality": self.jpeg_quality,
             },
@@ -189,9 +173,9 @@ class RecordingWriter:
     def _write_session(self) -> None:
         """Replace session.json atomically; RecordingError naming it if the disk refuses."""
         try:
-            atomic_write_json(self.path / SESSION_FILE, self.metadata)
+            atomic_write_json(self.path / logs.SESSION_FILE, self.metadata)
         except WriteError as e:
-            raise RecordingError(str(e)) from None
+            raise logs.RecordingError(str(e)) from None
 
     # --- streams -----------------------------------------------------------------------
     def write_frame(
@@ -199,7 +183,7 @@ class RecordingWriter:
     ) -> None:
         """image: (H, W, 3) uint8 BGR of ``frame_hw``; times in s (float64)."""
         if image.shape != (*self.frame_hw, 3) or image.dtype != np.uint8:
-            raise RecordingError(
+            raise logs.RecordingError(
                 f"{self.path}: frame is {image.shape} {image.dtype}; the recording expects "
                 f"({self.frame_hw[0]}, {self.frame_hw[1]}, 3) uint8"
             )
@@ -214,7 +198,7 @@ class RecordingWriter:
                 video, self._video = self._video, None
                 video.close()  # releases the file, cut short; frames.csv keeps its frames
                 path = video.path
-                raise RecordingError(
+                raise logs.RecordingError(
                     f"{path}: write failed ({describe_os_error(e)}); data flushed before this "
                     "point is kept"
                 ) from None
@@ -255,8 +239,8 @@ class RecordingWriter:
         try:
             self._events.flush(fsync=False)
         except OSError as e:
-            raise RecordingError(
-                f"{self.path / EVENTS_FILE}: write failed ({describe_os_error(e)})"
+            raise logs.RecordingError(
+                f"{self.path / logs.EVENTS_FILE}: write failed ({describe_os_error(e)})"
             ) from None
         return record
 
@@ -267,14 +251,14 @@ class RecordingWriter:
 
     # --- chunks and flushing ----------------------------------------------------------------
     def _video_path(self, chunk: int) -> Path:
-        return self.path / VIDEO_NAME.format(chunk)
+        return self.path / logs.VIDEO_NAME.format(chunk)
 
     def _open_chunk(self) -> None:
         path = self._video_path(self._chunk)
         try:
             self._video = MjpgAviWriter(path, self.frame_hw, self.fps, self.jpeg_quality)
         except OSError as e:
-            raise RecordingError(
+            raise logs.RecordingError(
                 f"{path}: cannot create video chunk ({describe_os_error(e)})"
             ) from None
         self._in_chunk = 0
@@ -288,7 +272,7 @@ class RecordingWriter:
         try:
             video.close()
         except OSError as e:
-            raise RecordingError(
+            raise logs.RecordingError(
                 f"{video.path}: write failed ({describe_os_error(e)}); earlier chunks are kept"
             ) from None
         self.flush(fsync=True)
@@ -300,14 +284,14 @@ class RecordingWriter:
             try:
                 f.flush(fsync)
             except OSError as e:
-                raise RecordingError(
+                raise logs.RecordingError(
                     f"{f.path}: write failed ({describe_os_error(e)}); data flushed before "
                     "this point is kept"
                 ) from None
 
     def _check_open(self) -> None:
         if self._closed:
-            raise RecordingError(f"{self.path}: recording already closed")
+            raise logs.RecordingError(f"{self.path}: recording already closed")
 
     def close(self, status: str = "complete", **fields: Any) -> None:
         """Close the open chunk and all files; record ``status`` in session.json.
@@ -321,7 +305,7 @@ class RecordingWriter:
             errors = []
             try:
                 self._close_chunk()
-            except (RecordingError, OSError) as e:
+            except (logs.RecordingError, OSError) as e:
                 errors.append(str(e))
             for f in (self._frames, self._force, self._printer, self._events):
                 try:
@@ -336,10 +320,12 @@ class RecordingWriter:
             )
             try:
                 self._write_session()
-            except RecordingError as e:
+            except logs.RecordingError as e:
                 errors.append(str(e))
             if errors:
-                raise RecordingError(f"{self.path}: closing the recording: " + "; ".join(errors))
+                raise logs.RecordingError(
+                    f"{self.path}: closing the recording: " + "; ".join(errors)
+                )
 
     def __enter__(self) -> RecordingWriter:
         return self
@@ -352,7 +338,7 @@ class RecordingWriter:
         )
         try:
             self.close(status)
-        except RecordingError:
+        except logs.RecordingError:
             if exc_type is None:
                 raise
             logger.exception("closing %s after an error", self.path)
