@@ -7,6 +7,7 @@ stiffness, the force) are measured for the change that factor must make.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -79,6 +80,10 @@ def test_sampling_is_seeded_and_reproducible():
     assert a[0].factors != c[0].factors
     assert len({s.config.n_beads for s in a}) > 1  # four different builds
     assert set(a[0].factors) == set(FACTOR_NAMES)
+    # A build's config survives the provenance's JSON (the demo rebuilds pouches from it).
+    assert all(
+        SimConfig.from_dict(json.loads(json.dumps(s.config.to_dict()))) == s.config for s in a
+    )
 
 
 def test_heldout_and_training_ranges_do_not_overlap():
