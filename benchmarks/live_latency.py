@@ -22,9 +22,13 @@ import sys
 
 import torch
 
-from beadsight.checkpoint import load_checkpoint
 from beadsight.inference.runtimes import BackendError, openvino_supports_bf16
-from beadsight.live.bench import bench_live, random_model, simulated_frames
+from beadsight.live.bench import (
+    add_model_arguments,
+    bench_live,
+    model_from_arguments,
+    simulated_frames,
+)
 
 CPU_TARGET = {"hz": 30.0, "p99_ms": 33.0}
 GPU_TARGET = {"hz": 1000.0, "p99_ms": 2.0}
@@ -45,21 +49,16 @@ def rows(include_compile: bool) -> list[tuple[str, str, str | None]]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", default=None)
     parser.add_argument("--frames", type=int, default=300, help="frames per run")
-    parser.add_argument("--image-size", type=int, default=256, help="random model size, px")
-    parser.add_argument("--width", type=int, default=16, help="random model U-Net width")
     parser.add_argument("--rate", type=float, default=30.0, help="sustained run's Hz (0: skip)")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--compile", action="store_true", help="include torch.compile (slow)")
     parser.add_argument("--cache-dir", default=None, help="backend cache (default: none)")
     parser.add_argument("--json", action="store_true", help="one JSON object per row")
+    add_model_arguments(parser)
     args = parser.parse_args(argv)
 
-    if args.checkpoint:
-        model = load_checkpoint(args.checkpoint)
-    else:
-        model = random_model(image_size=args.image_size, width=args.width)
+    model = model_from_arguments(args)
     frames, source = simulated_frames(model.image_size, min(args.frames, 300))
     options = {"threads": args.threads, "cache_dir": args.cache_dir}
     if not args.json:

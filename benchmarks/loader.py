@@ -135,7 +135,9 @@ def main() -> None:
         path = args.dataset
         t = time.perf_counter()
         if path is None:
-            path = write_dataset(Path(tmp) / "bench.h5", args.presses, args.press_frames, args.size, 0)
+            path = write_dataset(
+                Path(tmp) / "bench.h5", args.presses, args.press_frames, args.size, 0
+            )
         write_s = time.perf_counter() - t
         result = run(args, path, device)
         result["dataset_write_s"] = write_s

@@ -59,7 +59,7 @@ def _unique_frames(count: int, seed: int = 0) -> list[np.ndarray]:
 def synthesize(raw: Path, frames: int, unique: int) -> None:
     """Write a raw recording of ``frames`` frames (see the module docstring)."""
     from beadsight.data.recording import FRAMES_FILE, VIDEO_NAME, RecordingWriter
-    from beadsight.devices.base import CommandRecord, Reading
+    from beadsight.devices.base import CommandRecord, ScaleReading
 
     images = _unique_frames(unique)
     t0_unix, t0_mono = 1.7e9, 1000.0
@@ -77,7 +77,7 @@ def synthesize(raw: Path, frames: int, unique: int) -> None:
             * (phase < 0.7)
         )
         w.write_readings(
-            Reading(t0_unix + ti, t0_mono + ti, round(f / G_TO_N, 2), f, i, None)
+            ScaleReading(t0_unix + ti, t0_mono + ti, round(f / G_TO_N, 2), f, i, None)
             for i, (ti, f) in enumerate(zip(t, force, strict=True))
         )
         rng = np.random.default_rng(1)

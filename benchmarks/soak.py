@@ -24,9 +24,8 @@ import time
 
 import numpy as np
 
-from beadsight.checkpoint import load_checkpoint
 from beadsight.inference.predictor import PressurePredictor
-from beadsight.live.bench import random_model, simulated_frames
+from beadsight.live.bench import add_model_arguments, model_from_arguments, simulated_frames
 
 MAX_RSS_GROWTH_MB = 50.0
 CREEP_LIMIT = 1.25  # later blocks' median p50 above this times the earlier blocks' is creep
@@ -51,19 +50,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=100_000)
     parser.add_argument("--block", type=int, default=10_000, help="frames per latency block")
-    parser.add_argument("--checkpoint", default=None)
-    parser.add_argument("--image-size", type=int, default=256, help="random model size, px")
-    parser.add_argument("--width", type=int, default=16, help="random model U-Net width")
     parser.add_argument("--backend", default="auto")
     parser.add_argument("--precision", default="auto")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
+    add_model_arguments(parser)
     args = parser.parse_args(argv)
 
-    if args.checkpoint:
-        model = load_checkpoint(args.checkpoint)
-    else:
-        model = random_model(image_size=args.image_size, width=args.width)
+    model = model_from_arguments(args)
     frames, source = simulated_frames(model.image_size, SOURCE_FRAMES)
     predictor = PressurePredictor.from_checkpoint(
         model, args.backend, args.precision, threads=args.threads

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from beadsight.data.recording import RecordingWriter
-from beadsight.devices.base import CommandRecord, Reading
+from beadsight.devices.base import CommandRecord, ScaleReading
 
 CENTRE = (151.8, 108.9)
 T0_UNIX = 1.7e9
@@ -108,7 +108,7 @@ def write_beadsight_raw(
             while fi < len(f_times) and f_times[fi] <= t:
                 w.write_readings(
                     [
-                        Reading(
+                        ScaleReading(
                             T0_UNIX + f_times[fi],
                             T0_MONO + f_times[fi],
                             round(float(grams[fi]), 2),

@@ -25,20 +25,8 @@ REPORT_FILES = (
 def test_demo_with_a_checkpoint(tmp_path, tiny_model, capsys):
     checkpoint = tiny_model.save(tmp_path / "tiny.pt")
     out = tmp_path / "report"
-    argv = [
-        "demo",
-        "--checkpoint",
-        str(checkpoint),
-        "--out",
-        str(out),
-        "--presses",
-        "2",
-        "--max-frames",
-        "24",
-        "--animation-frames",
-        "12",
-        "--no-progress",
-    ]
+    argv = ["demo", "--checkpoint", str(checkpoint), "--out", str(out), "--no-progress"]
+    argv += "--presses 2 --max-frames 24 --animation-frames 12".split()
     assert main(argv) == 0
     printed = capsys.readouterr().out
     for row in (
@@ -111,29 +99,10 @@ def test_missing_checkpoint_is_a_clear_error(tmp_path, capsys):
 @pytest.mark.slow
 def test_demo_train_from_scratch(tmp_path, capsys):
     out = tmp_path / "trained"
-    argv = [
-        "demo",
-        "--train",
-        "--out",
-        str(out),
-        "--presses",
-        "1",
-        "--max-frames",
-        "12",
-        "--train-presses",
-        "4",
-        "--train-steps",
-        "3",
-        "--train-batch-size",
-        "2",
-        "--train-width",
-        "4",
-        "--train-image-size",
-        "32",
-        "--animation-frames",
-        "4",
-        "--no-progress",
-    ]
+    argv = ["demo", "--train", "--out", str(out), "--no-progress"]
+    argv += "--presses 1 --max-frames 12 --animation-frames 4".split()
+    argv += "--train-presses 4 --train-steps 3 --train-batch-size 2 --train-width 4".split()
+    argv += "--train-image-size 32".split()
     assert main(argv) == 0
     printed = capsys.readouterr().out
     assert "pressure MAE (kPa)" in printed and "would take" in printed

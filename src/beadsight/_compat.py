@@ -45,6 +45,19 @@ def deprecated(old: str, new: str, stacklevel: int = 3) -> None:
     )
 
 
+def lazy_names(package: str, where: dict[str, str]):
+    """A module ``__getattr__`` (PEP 562) for ``package`` that imports each name of
+    ``where`` (name -> defining module) on first use, so the package imports light."""
+
+    def __getattr__(name: str):
+        module = where.get(name)
+        if module is None:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        return getattr(importlib.import_module(module), name)
+
+    return __getattr__
+
+
 def renamed_attribute(owner: str, old: str, new: str) -> property:
     """A read-only property ``old`` that warns and returns attribute ``new``."""
 

@@ -10,7 +10,6 @@ reference's 120 degree field of view, cropped like the reference.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from collections.abc import Iterable
@@ -22,7 +21,7 @@ import cv2
 import numpy as np
 
 from beadsight.errors import BeadSightError, ConfigError
-from beadsight.files import atomic_write_json
+from beadsight.files import atomic_write_json, read_json_object
 from beadsight.preprocess import (
     REFERENCE_OUTPUT_SIZE,
     REFERENCE_PFOV_DEG,
@@ -119,15 +118,7 @@ class FisheyeCalibration:
 
 def load_calibration(path: str | Path) -> FisheyeCalibration:
     """Read a calibration JSON written by :meth:`FisheyeCalibration.save`."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise CalibrationError(f"{path}: calibration file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise CalibrationError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(data, dict):
-        raise CalibrationError(f"{path}: expected a JSON object")
+    data = read_json_object(path, CalibrationError, "a calibration JSON object")
     return FisheyeCalibration.from_dict(data, source=str(path))
 
 

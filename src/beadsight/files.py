@@ -58,6 +58,23 @@ class ClosesOrAborts:
             self.abort()
 
 
+def read_json_object(
+    path: str | Path, error: type[BeadSightError] = BeadSightError, what: str = "a JSON object"
+) -> dict[str, Any]:
+    """The JSON object in ``path``; ``error`` naming the file if it is missing, not JSON,
+    or not an object (``what`` says what was expected)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise error(f"{path}: file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise error(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise error(f"{path}: expected {what}")
+    return data
+
+
 def refuse_existing(path: str | Path, overwrite: bool = False, flag: str = "--overwrite") -> Path:
     """Refuse to write ``path`` over anything that exists unless ``overwrite`` (never a folder)."""
     path = Path(path)

@@ -40,6 +40,10 @@ def test_short_presses_are_evaluated_on_every_frame_with_history(make_dataset, t
     assert metrics["frames"] == n - (SPAN - 1)
     assert metrics["valid_frames"] == n
     assert metrics["coverage"] == pytest.approx((n - SPAN + 1) / n)
+    assert metrics["window_coverage"] == metrics["coverage"]  # no --max-frames sample
+    sampled = evaluate(tiny_model, data, split="all", device="cpu", progress=False, max_frames=20)
+    assert sampled["frames"] == 20 and sampled["coverage"] == pytest.approx(20 / n)
+    assert sampled["window_coverage"] == metrics["window_coverage"]
     assert metrics["presses"] >= 9  # the first press's frames lack 14 frames of history
 
 

@@ -147,6 +147,13 @@ def test_reading_aliases_warn_and_are_the_new_class():
 
     with pytest.deprecated_call(match="Reading is deprecated"):
         assert predictor.Reading is PressureReading
+    from beadsight import devices
+    from beadsight.devices import base
+
+    with pytest.deprecated_call(match=r"devices\.Reading is deprecated.*ScaleReading"):
+        assert devices.Reading is devices.ScaleReading
+    with pytest.deprecated_call(match=r"base\.Reading is deprecated.*ScaleReading"):
+        assert base.Reading is devices.ScaleReading
     with pytest.deprecated_call(match="otsu_threshold is deprecated"):
         threshold = predictor.otsu_threshold
     assert 5.0 < threshold(np.array([5.0] * 10 + [50.0] * 10)) <= 50.0

@@ -5,7 +5,7 @@ Drivers (each a context manager with ``connect()`` / ``close()``):
 * :class:`MarlinPrinter` - G-code over serial with line numbers, checksums, resends and
   a :class:`SafetyEnvelope` checked before anything is sent.
 * :class:`HX711Scale` - background reader of the Arduino scale (beadsight firmware or the
-  reference sketch), host-timestamped :class:`Reading` objects.
+  reference sketch), host-timestamped :class:`ScaleReading` objects.
 * :class:`OpenCVCamera` - camera index, device path or video file; like every
   :class:`Camera`, a background reader of timestamped :class:`Frame` objects with
   ``read`` / ``async_read`` / ``read_latest`` (:mod:`beadsight.devices.camera`).
@@ -29,7 +29,6 @@ from beadsight.devices.base import (
     Printer,
     PrinterDesyncError,
     PrinterError,
-    Reading,
     SafetyError,
     Scale,
     ScaleError,
@@ -70,7 +69,6 @@ __all__ = [
     "Printer",
     "PrinterDesyncError",
     "PrinterError",
-    "Reading",
     "SafetyEnvelope",
     "SafetyError",
     "Scale",
@@ -83,6 +81,11 @@ __all__ = [
 
 
 def __getattr__(name: str):
+    if name == "Reading":  # its name before 0.2 (beadsight.Reading was the predictor's)
+        from beadsight._compat import deprecated
+
+        deprecated("beadsight.devices.Reading", "beadsight.devices.ScaleReading")
+        return ScaleReading
     if name in _VIRTUAL:  # the virtual twins need pty (POSIX) and, for the rig, the simulator
         from beadsight.devices import virtual
 

@@ -111,7 +111,7 @@ class CommandRecord(NamedTuple):
 
 
 @dataclass(frozen=True)
-class Reading:
+class ScaleReading:
     """One scale reading.
 
     ``t_unix`` / ``t_mono``: host time the line arrived (s). ``grams``: load in grams
@@ -128,9 +128,6 @@ class Reading:
     force_n: float
     seq: int
     device_ms: int | None
-
-
-ScaleReading = Reading  # alias for readers who want the longer name
 
 
 @dataclass(frozen=True)
@@ -187,9 +184,9 @@ class Scale(Protocol):
 
     def connect(self) -> None: ...
     def close(self) -> None: ...
-    def latest(self) -> Reading | None: ...
-    def readings_since(self, t_mono: float) -> list[Reading]: ...
-    def drain(self) -> list[Reading]: ...
+    def latest(self) -> ScaleReading | None: ...
+    def readings_since(self, t_mono: float) -> list[ScaleReading]: ...
+    def drain(self) -> list[ScaleReading]: ...
     def tare(self) -> None: ...
     def calibrate(self, known_grams: float) -> float: ...
 
@@ -252,3 +249,12 @@ class DeviceContext:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def __getattr__(name: str):
+    if name == "Reading":  # its name before 0.2
+        from beadsight._compat import deprecated
+
+        deprecated("beadsight.devices.base.Reading", "beadsight.devices.base.ScaleReading")
+        return ScaleReading
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

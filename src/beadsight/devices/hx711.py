@@ -45,8 +45,8 @@ from beadsight.devices.base import (
     DeviceError,
     DeviceNotConnectedError,
     DeviceTimeoutError,
-    Reading,
     ScaleError,
+    ScaleReading,
     host_now,
 )
 from beadsight.devices.scale_protocol import (
@@ -89,7 +89,7 @@ class HX711Scale:
 
     protocol: "auto" (detect), "beadsight" (our firmware) or "reference" (plain grams).
     timeout_s: wait for command replies. boot_timeout_s: wait for the first reading.
-    g_to_n: newtons per gram for :attr:`Reading.force_n` (reference: 9.81e-3).
+    g_to_n: newtons per gram for :attr:`ScaleReading.force_n` (reference: 9.81e-3).
     """
 
     def __init__(
@@ -101,7 +101,7 @@ class HX711Scale:
         timeout_s: float = COMMAND_TIMEOUT_S,
         boot_timeout_s: float = BOOT_TIMEOUT_S,
         buffer_size: int = BUFFER_READINGS,
-        on_reading: Callable[[Reading], None] | None = None,
+        on_reading: Callable[[ScaleReading], None] | None = None,
         name: str | None = None,
     ):
         if protocol not in PROTOCOLS:
@@ -120,7 +120,7 @@ class HX711Scale:
         self.dropped = 0
         self.garbage_lines = 0
         self.received = 0
-        self._buffer: deque[Reading] = deque(maxlen=int(buffer_size))
+        self._buffer: deque[ScaleReading] = deque(maxlen=int(buffer_size))
         self._raw: deque[float] = deque(maxlen=TARE_SAMPLES * 10)  # device grams, newest last
         self._cond = threading.Condition()
         self._replies: queue.Queue[str] = queue.Queue()
@@ -129,7 +129,7 @@ class HX711Scale:
         self._last_seq: int | None = None
         self._ref_seq = -1
         self._detector = ProtocolDetector()
-        self._latest: Reading | None = None
+        self._latest: ScaleReading | None = None
         self._io: SerialLines | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -192,7 +192,7 @@ class HX711Scale:
         )
 
     # --- readings ---------------------------------------------------------------------
-    def latest(self) -> Reading | None:
+    def latest(self) -> ScaleReading | None:
         """The newest reading (None before the first); raises if the scale was lost and
         nothing was ever read."""
         with self._cond:
@@ -202,7 +202,7 @@ class HX711Scale:
 
     def wait_for_reading(
         self, timeout_s: float | None = None, *, after_mono: float | None = None
-    ) -> Reading:
+    ) -> ScaleReading:
         """The newest reading that arrived after ``after_mono`` (default: any), waiting up to
         ``timeout_s`` (default: the command timeout). Raises DeviceTimeoutError when the
         scale stopped streaming, DeviceNotConnectedError when it was lost."""
@@ -224,7 +224,7 @@ class HX711Scale:
                     )
                 self._cond.wait(remaining)
 
-    def readings_since(self, t_mono: float) -> list[Reading]:
+    def readings_since(self, t_mono: float) -> list[ScaleReading]:
         """Buffered readings with ``t_mono`` strictly after ``t_mono`` (oldest first); the
         buffer is left as is."""
         with self._cond:
@@ -234,7 +234,7 @@ class HX711Scale:
         out.reverse()
         return out
 
-    def drain(self) -> list[Reading]:
+    def drain(self) -> list[ScaleReading]:
         """Every buffered reading (oldest first), emptying the buffer. Raises the
         connection error once the scale is lost and the buffer is empty."""
         with self._cond:
@@ -453,7 +453,7 @@ class HX711Scale:
         self, device_grams: float, seq: int, device_ms: int | None, t_unix: float, t_mono: float
     ) -> None:
         grams = round((device_grams - self.offset_g) * self.gain, 2)
-        reading = Reading(t_unix, t_mono, grams, float(grams_to_newtons(grams)), seq, device_ms)
+        reading = ScaleReading(t_unix, t_mono, grams, float(grams_to_newtons(grams)), seq, device_ms)
         with self._cond:
             self._buffer.append(reading)
             self._raw.append(device_grams)

@@ -8,7 +8,8 @@ previous press), compares with the ground truth of
 :mod:`beadsight.evaluation.metrics` batch by batch. With ``out_dir`` it writes:
 
 * ``metrics.json``: the metrics (strict JSON, no NaN), counts, split, names, and
-  ``coverage`` (frames evaluated / valid frames of the split);
+  ``coverage`` (frames evaluated / valid frames of the split) and ``window_coverage``
+  (frames with a full window of history / valid frames);
 * ``predictions.h5``: ``pred_kpa``/``gt_kpa`` (N, H, W) float32 (gzip),
   ``force_gt_n``/``force_pred_n`` (N,) N, ``cop_gt_mm``/``cop_pred_mm`` (N, 2) mm
   (NaN where that map has no positive pressure), ``index`` (N,) dataset frame
@@ -288,10 +289,10 @@ def evaluate(
         run = _Run(model, ds, evaluation_geometry(model, ds, resize), batch_size)
         selection = select_split(model, ds, split)
         ends = evaluation_frames(model, ds, selection, max_frames)
-        covered = coverage(ds, selection, ends.size)
+        covered = coverage(ds, selection, model.span, ends.size)
         log.info(
             "evaluating %s on %d frames of %d presses (%s split, %s) of %s: coverage %.1f%% "
-            "of the split's %d valid frames",
+            "of the split's %d valid frames (%.1f%% have a full window%s)",
             model.source,
             ends.size,
             np.unique(ds.press_id[ends]).size,
@@ -300,6 +301,8 @@ def evaluate(
             ds.path,
             100 * covered["coverage"],
             covered["valid_frames"],
+            100 * covered["window_coverage"],
+            f"; --max-frames {max_frames} took an even sample" if max_frames else "",
         )
         base_maps = run.baseline_maps(selection, ends) if baselines else {}
         accs, col = run.loop(ends, base_maps, out, selection, progress)

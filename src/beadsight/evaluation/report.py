@@ -310,7 +310,10 @@ def evaluation_summary(metrics: Mapping) -> str:
     if metrics.get("coverage") is not None:
         text += f", {100 * float(metrics['coverage']):.1f} % of its valid frames"
     if metrics.get("max_frames"):
-        text += f" (at most {metrics['max_frames']}, spread evenly)"
+        text += f" (at most {metrics['max_frames']}, spread evenly"
+        if metrics.get("window_coverage") is not None:
+            text += f" over the {100 * float(metrics['window_coverage']):.1f} % with a full window"
+        text += ")"
     text += f", on {metrics.get('device', '?')}. Checkpoint: {metrics.get('checkpoint', '?')}."
     if metrics.get("baselines"):
         text += (

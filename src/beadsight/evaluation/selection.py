@@ -243,13 +243,20 @@ def selection_ends(ds: Dataset, selection: SplitSelection, span: int, train: boo
     return np.intersect1d(frames, dataset_window_ends(ds, span)).astype(np.int64)
 
 
-def coverage(ds: Dataset, selection: SplitSelection, evaluated: int) -> dict:
-    """``coverage`` (evaluated / valid frames of the split) and ``valid_frames``."""
+def coverage(ds: Dataset, selection: SplitSelection, span: int, evaluated: int) -> dict:
+    """``coverage``: frames evaluated / valid frames of the split; ``window_coverage``:
+    frames with a full window of real history / valid frames (the same unless
+    ``--max-frames`` took an even sample of them); and ``valid_frames``."""
     if selection.frames is not None:
         candidates = int(ds.valid[selection.frames].sum())
     else:
         candidates = int(valid_frames(ds, selection.press_ids).size)
-    return {"coverage": evaluated / candidates if candidates else 0.0, "valid_frames": candidates}
+    windowed = int(selection_ends(ds, selection, span, train=False).size)
+    return {
+        "coverage": evaluated / candidates if candidates else 0.0,
+        "window_coverage": windowed / candidates if candidates else 0.0,
+        "valid_frames": candidates,
+    }
 
 
 def _longest_valid_run(ds: Dataset) -> int:

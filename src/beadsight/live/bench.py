@@ -75,6 +75,23 @@ def random_model(
         return PressureModel.create(meta)
 
 
+def add_model_arguments(parser: Any) -> None:
+    """``--checkpoint`` (a trained model) or ``--image-size``/``--width`` of a random one,
+    for the live benchmarks' command lines (see :func:`model_from_arguments`)."""
+    parser.add_argument("--checkpoint", default=None, help="checkpoint (default: a random model)")
+    parser.add_argument("--image-size", type=int, default=256, help="random model size, px")
+    parser.add_argument("--width", type=int, default=16, help="random model U-Net width")
+
+
+def model_from_arguments(args: Any) -> PressureModel:
+    """The checkpoint of ``args.checkpoint``, else :func:`random_model` of its size/width."""
+    if args.checkpoint:
+        from beadsight.checkpoint import load_checkpoint
+
+        return load_checkpoint(args.checkpoint)
+    return random_model(image_size=args.image_size, width=args.width)
+
+
 def simulated_frames(image_size: int, count: int = DEFAULT_SOURCE_FRAMES, seed: int = 0):
     """(count, S, S, 3) uint8 RGB frames of the simulated sensor, and where they came from.
 

@@ -14,8 +14,7 @@ See ``docs/simulator.md``.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from beadsight._compat import lazy_names
 
 # The names above, each loaded from its module on first use (so reading SimConfig does
 # not load the simulator, scipy or h5py).
@@ -38,10 +37,4 @@ _NAMES = {
 }
 
 __all__ = sorted(_NAMES)
-
-
-def __getattr__(name: str) -> Any:
-    module = _NAMES.get(name)
-    if module is None:
-        raise AttributeError(f"module 'beadsight.sim' has no attribute {name!r}")
-    return getattr(importlib.import_module(module), name)
+__getattr__ = lazy_names(__name__, _NAMES)

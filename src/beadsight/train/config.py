@@ -7,7 +7,6 @@ without loading them.
 
 from __future__ import annotations
 
-import json
 import math
 import numbers
 import os
@@ -26,6 +25,7 @@ from beadsight.config import (
     load_toml,
     renamed_fields,
 )
+from beadsight.files import read_json_object
 
 CONFIG_FILE = "config.json"  # the resolved TrainConfig in the run folder
 PRECISIONS = ("fp32", "bf16", "fp16")
@@ -246,10 +246,5 @@ def _stored_config(early: Mapping[str, Any], names: set[str]) -> dict[str, Any]:
     stored = Path(str(early["out"])) / CONFIG_FILE
     if not stored.is_file():
         return {}
-    try:
-        data = json.loads(stored.read_text())
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{stored}: not valid JSON ({e})") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{stored}: expected a JSON object of training settings")
+    data = read_json_object(stored, ConfigError, "a JSON object of training settings")
     return {k: v for k, v in TrainConfig.upgrade_keys(data).items() if k in names}

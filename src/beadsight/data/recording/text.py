@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from beadsight.data.recording.logs import EVENTS_FILE, SESSION_FILE, RecordingError
+from beadsight.files import read_json_object
 
 LINES_SHOWN = 3  # line numbers quoted in one warning before "and N more"
 
@@ -174,13 +175,7 @@ def json_lines(path: Path, warnings: list[str]) -> list[dict[str, Any]]:
 
 def read_json(path: Path) -> dict[str, Any]:
     """A JSON object file; RecordingError naming the file if it is not one."""
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise RecordingError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(data, dict):
-        raise RecordingError(f"{path}: expected a JSON object")
-    return data
+    return read_json_object(path, RecordingError)
 
 
 def read_session(path: str | Path) -> dict[str, Any]:

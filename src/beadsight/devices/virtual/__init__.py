@@ -14,8 +14,7 @@ anywhere. Names are imported on first use, so importing a camera does not need `
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from beadsight._compat import lazy_names
 
 _WHERE = {
     "PlaybackCamera": "beadsight.devices.virtual.camera",
@@ -28,12 +27,7 @@ _WHERE = {
 }
 
 __all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(_WHERE[name]), name)
+__getattr__ = lazy_names(__name__, _WHERE)
 
 
 def __dir__() -> list[str]:
