@@ -12,6 +12,9 @@ cache, as in any session longer than a press or two):
 * ``raw``: ``render_raw()`` (1280 x 1024 fisheye, noise, MJPG) per second;
 * ``session_256`` / ``session_64``: a :class:`SimulatedSession` (press trajectory,
   mechanics at frame and scale times, scale, rendering) per second;
+* ``variety_256`` / ``variety_64``: the same with ``variety="train"`` and a new build
+  (beads, light, camera, image; :mod:`beadsight.sim.variety`) every press, as a
+  base-model training set is made (each new build starts an empty sprite cache);
 * each also per CPU-second of this process (``*_cpu``): on a shared machine the
   wall-clock figure is what you get, the CPU figure what the code costs.
 """
@@ -27,6 +30,13 @@ import time
 
 from beadsight.inference.machine import cpu_summary
 from beadsight.sim import PouchSimulator, SimConfig, SimulatedSession
+
+
+def cpu_model() -> str:
+    """The processor's name (/proc/cpuinfo), for the record beside the figures."""
+    from beadsight.inference.machine import cpu_name
+
+    return cpu_name()
 
 
 def _timed(fn, count: int, repeats: int) -> tuple[float, float]:
@@ -72,8 +82,15 @@ def bench_raw(frames: int, repeats: int) -> tuple[float, float]:
     return _timed(one, frames, repeats)
 
 
-def bench_session(size: int, frames: int, repeats: int) -> tuple[float, float]:
-    session = iter(SimulatedSession(SimConfig(image_size_px=size), seed=0))
+def bench_session(
+    size: int, frames: int, repeats: int, variety: str | None = None
+) -> tuple[float, float]:
+    per_pouch = None if variety is None else 1
+    session = iter(
+        SimulatedSession(
+            SimConfig(image_size_px=size), seed=0, presses_per_pouch=per_pouch, variety=variety
+        )
+    )
     for _ in range(400):  # two presses: warm the sprite cache
         next(session)
     return _timed(lambda i: next(session), frames, repeats)
@@ -88,17 +105,20 @@ def main() -> None:
     args = parser.parse_args()
     print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
 
-    results: dict[str, float] = {}
+    results: dict[str, float | str] = {}
     for name, (wall, cpu) in (
         ("render_256", bench_render(256, args.frames, args.repeats)),
         ("render_64", bench_render(64, args.frames, args.repeats)),
         ("raw", bench_raw(args.raw_frames, args.repeats)),
         ("session_256", bench_session(256, args.frames, args.repeats)),
         ("session_64", bench_session(64, args.frames, args.repeats)),
+        ("variety_256", bench_session(256, args.frames, args.repeats, "train")),
+        ("variety_64", bench_session(64, args.frames, args.repeats, "train")),
     ):
         results[f"{name}_fps"] = round(wall, 1)
         results[f"{name}_cpu_fps"] = round(cpu, 1)
     results["cpu_count"] = os.cpu_count() or 0
+    results["cpu_model"] = cpu_model()
     results["load_average_1min"] = round(os.getloadavg()[0], 2)
     frames_per_press = SimulatedSession(SimConfig(), 0, presses=20, render=False).num_frames() / 20
     results["frames_per_press"] = round(frames_per_press, 1)
@@ -106,7 +126,7 @@ def main() -> None:
         print(json.dumps(results))
         return
     print(
-        f"simulator speed ({results['cpu_count']} CPUs, load average "
+        f"simulator speed ({results['cpu_count']} x {results['cpu_model']}, load average "
         f"{results['load_average_1min']}); frames/s wall-clock (per CPU-second)"
     )
     labels = {
@@ -115,6 +135,8 @@ def main() -> None:
         "raw": "render_raw() 1280 x 1024 fisheye",
         "session_256": "session (physics + render) 256",
         "session_64": "session (physics + render) 64",
+        "variety_256": "session, new build every press, 256",
+        "variety_64": "session, new build every press, 64",
     }
     for key, label in labels.items():
         print(f"  {label:<34} {results[key + '_fps']:>8.1f}  ({results[key + '_cpu_fps']:.1f})")

@@ -65,6 +65,14 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
         help="spread the presses over this many fresh pouches (default one; use several "
         "for training sets, so a model does not learn one pouch)",
     )
+    p.add_argument(
+        "--variety",
+        choices=("train", "heldout"),
+        default=None,
+        help="make every pouch a different build (beads, light, camera, image) drawn from "
+        "this split of the range of real builds (docs/simulator.md); with --pouches N, "
+        "a base-model training set (train) or builds no base model saw (heldout)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -86,6 +94,7 @@ def _simulate(args: argparse.Namespace) -> int:
         image_size=args.image_size_px,
         fps=args.fps,
         compression=args.compression,
+        variety=args.variety,
         overwrite=args.overwrite,
         progress=not args.no_progress,
         **given(seed=args.seed, pouches=args.pouches),

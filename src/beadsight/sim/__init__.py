@@ -5,7 +5,9 @@
   camera's sensor-space (``render``) and raw fisheye (``render_raw``) frames;
 * :class:`SimulatedScale` - the HX711 kitchen scale the rig reads forces from;
 * :class:`SimulatedSession` - the reference press pattern, frame by frame;
-* :func:`simulate_dataset` - record a session as a dataset (scale force, commanded XY).
+* :func:`simulate_dataset` - record a session as a dataset (scale force, commanded XY);
+* :func:`sample_pouch` / :class:`PouchDistribution` - the range of real builds (pouch,
+  light, camera, image), with a held-out split, for base models.
 
 See ``docs/simulator.md``.
 """
@@ -18,6 +20,8 @@ from beadsight._compat import lazy_names
 # not load the simulator, scipy or h5py).
 _NAMES = {
     "PRESET_BEAD_COUNTS": "beadsight.sim.config",
+    "PouchDistribution": "beadsight.sim.variety",
+    "PouchSample": "beadsight.sim.variety",
     "PouchSimulator": "beadsight.sim.simulator",
     "Press": "beadsight.sim.press",
     "PressCycle": "beadsight.sim.press",
@@ -26,6 +30,7 @@ _NAMES = {
     "SimulatedScale": "beadsight.sim.scale",
     "SimulatedSession": "beadsight.sim.session",
     "SimulationError": "beadsight.sim.dataset",
+    "sample_pouch": "beadsight.sim.variety",
     "sample_presses": "beadsight.sim.press",
     "sim_config_for": "beadsight.sim.dataset",
     "simulate_dataset": "beadsight.sim.dataset",

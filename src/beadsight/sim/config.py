@@ -27,6 +27,7 @@ MIXED_TINTS_RGB = (
 )
 
 PRESET_BEAD_COUNTS = (75, 100, 125)  # pouch variants of the published sensor
+WARM_WHITE_RGB = (1.0, 0.97, 0.92)  # colour of the reference build's LEDs (linear RGB)
 
 
 @dataclass(frozen=True)
@@ -110,10 +111,40 @@ class SimConfig(_Serializable):
     raw_jpeg_quality: int | None = 85  # MJPG compression of raw frames (None: off)
     raw_render_px: int = 768  # sensor-space resolution rendered for raw frames
 
+    # --- light: how one build's LEDs differ from another's ------------------------------
+    led_intensity: float = 1.0  # brightness of the LEDs relative to the reference build
+    led_colour_rgb: tuple[float, float, float] = WARM_WHITE_RGB  # LED colour (linear RGB)
+    led_rotation_deg: float = 0.0  # the square of four LEDs is turned by this about the centre
+    ambient_light: float = 0.22  # light scattered inside the housing, relative to the LEDs' peak
+
+    # --- camera: mounting, lens and settings that differ from the reference build --------
+    exposure_gain: float = 1.0  # exposure x sensor gain relative to the reference build
+    white_balance_rgb: tuple[float, float, float] = (1.0, 1.0, 1.0)  # per-channel gains
+    camera_offset_mm: tuple[float, float] = (0.0, 0.0)  # camera shifted by (x, y), printer frame
+    camera_tilt_deg: tuple[float, float] = (0.0, 0.0)  # tilt about the image's row, column axes
+    camera_roll_deg: float = 0.0  # rotation about the optical axis
+    lens_focal_error: float = 0.0  # the fisheye's focal length differs by this fraction
+    lens_distortion_k: float = 0.0  # fisheye r = f theta (1 + k theta^2) instead of f theta
+    crop_scale_error: float = 0.0  # the preprocessing crop is this fraction larger (zoom out)
+    crop_offset_mm: tuple[float, float] = (0.0, 0.0)  # the crop sits off the optical axis (x, y)
+
+    # --- image ------------------------------------------------------------------------
+    motion_blur_fraction: float = 0.0  # exposure reaches this far into the previous frame period
+    defocus_sigma_mm: float = 0.0  # Gaussian blur of an out-of-focus lens, mm on the pouch
+
     def __post_init__(self) -> None:
         tints = tuple(tuple(float(c) for c in t) for t in self.bead_tints_rgb)
         object.__setattr__(self, "bead_tints_rgb", tints)
-        for name in ("bubble_diameter_range_mm", "centre_xy_mm", "press_z_range_mm"):
+        for name in (
+            "bubble_diameter_range_mm",
+            "centre_xy_mm",
+            "press_z_range_mm",
+            "led_colour_rgb",
+            "white_balance_rgb",
+            "camera_offset_mm",
+            "camera_tilt_deg",
+            "crop_offset_mm",
+        ):
             object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
         for name in ("n_beads", "n_bubbles", "image_size_px", "raw_render_px"):
             value = getattr(self, name)
@@ -205,6 +236,7 @@ class SimConfig(_Serializable):
         need(0 <= self.vignetting < 1, "vignetting", "in [0, 1)")
         need(0 <= self.background_level <= 255, "background_level", "in [0, 255]")
         need(len(self.centre_xy_mm) == 2, "centre_xy_mm", "(x, y)")
+        self._check_variety_ranges(need)
         z_lo, z_hi = self.press_z_range_mm
         need(
             len(self.press_z_range_mm) == 2 and z_lo <= z_hi < self.clear_z_mm,
@@ -228,6 +260,27 @@ class SimConfig(_Serializable):
         for name in ("jpeg_quality", "raw_jpeg_quality"):
             q = getattr(self, name)
             need(q is None or (int(q) == q and 1 <= q <= 100), name, "None or an integer 1..100")
+
+    def _check_variety_ranges(self, need) -> None:
+        """Ranges of the fields that let builds differ (light, camera, image)."""
+        need(0 < self.led_intensity <= 10, "led_intensity", "in (0, 10]")
+        need(0 < self.exposure_gain <= 10, "exposure_gain", "in (0, 10]")
+        need(0 <= self.ambient_light <= 5, "ambient_light", "in [0, 5]")
+        for name in ("led_colour_rgb", "white_balance_rgb"):
+            v = getattr(self, name)
+            need(len(v) == 3 and all(0 < c <= 4 for c in v), name, "(r, g, b), each in (0, 4]")
+        for name in ("camera_offset_mm", "crop_offset_mm"):
+            v = getattr(self, name)
+            need(len(v) == 2 and all(abs(c) <= 5 for c in v), name, "(x, y) within +-5 mm")
+        tilt = self.camera_tilt_deg
+        need(len(tilt) == 2 and all(abs(c) <= 15 for c in tilt), "camera_tilt_deg", "within +-15")
+        need(abs(self.camera_roll_deg) <= 45, "camera_roll_deg", "within +-45")
+        need(abs(self.led_rotation_deg) <= 45, "led_rotation_deg", "within +-45")
+        need(abs(self.lens_focal_error) <= 0.3, "lens_focal_error", "within +-0.3")
+        need(abs(self.lens_distortion_k) <= 0.3, "lens_distortion_k", "within +-0.3")
+        need(abs(self.crop_scale_error) <= 0.3, "crop_scale_error", "within +-0.3")
+        need(0 <= self.motion_blur_fraction < 1, "motion_blur_fraction", "in [0, 1)")
+        need(0 <= self.defocus_sigma_mm <= 2, "defocus_sigma_mm", "in [0, 2]")
 
     # --- derived ---------------------------------------------------------------------
     @property

@@ -19,6 +19,7 @@ the scale has read past its timestamp.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 from pathlib import Path
@@ -31,10 +32,15 @@ from beadsight.data.dataset import DatasetWriter
 from beadsight.errors import BeadSightError
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
 from beadsight.sim.session import SimFrame, SimulatedSession
+from beadsight.sim.variety import FACTOR_NAMES, SPLITS
 
 logger = logging.getLogger(__name__)
 
 WRITE_CHUNK_FRAMES = 64  # frames buffered before a write
+# Per-pouch factors are stored in the provenance (an HDF5 attribute) up to this size;
+# beyond it only the seed, which re-draws them (see variety_provenance).
+MAX_BUILDS_JSON_BYTES = 32_000
+FACTOR_DIGITS = 5  # significant digits of the stored factors
 
 
 class SimulationError(BeadSightError, ValueError):
@@ -101,6 +107,7 @@ def simulate_dataset(
     config: SimConfig | None = None,
     compression: str | None = None,
     pouches: int = 1,
+    variety: str | None = None,
     overwrite: bool = False,
     progress: bool = True,
 ) -> Path:
@@ -110,9 +117,11 @@ def simulate_dataset(
     ``n_beads``, 100 beads, 256 px, 30 fps). compression: HDF5 filter for the
     frames (None or "gzip"/"lzf"). pouches: spread the presses over this many
     pouches (a fresh pouch every ``ceil(presses / pouches)`` presses), so a model
-    trained on the dataset meets more than one bead arrangement and look. An
-    existing ``out`` is refused unless ``overwrite``. Frames are RGB; provenance
-    records the seed, the pouches and the full config.
+    trained on the dataset meets more than one bead arrangement and look. variety:
+    ``"train"`` or ``"heldout"``: each pouch is a different build drawn from that
+    split of :mod:`beadsight.sim.variety` (``config`` is the base: image size, fps,
+    rig). An existing ``out`` is refused unless ``overwrite``. Frames are RGB;
+    provenance records the seed, the pouches, the full config and each build's factors.
     """
     out = Path(out)
     if isinstance(presses, bool) or int(presses) != presses or presses < 1:
@@ -125,7 +134,11 @@ def simulate_dataset(
         raise SimulationError(f"compression must be None, 'gzip' or 'lzf', got {compression!r}")
     cfg = sim_config_for(n_beads, image_size, fps, config)
     per_pouch = math.ceil(presses / pouches) if pouches > 1 else None
-    session = SimulatedSession(cfg, seed, int(presses), presses_per_pouch=per_pouch)
+    if variety is not None and variety not in SPLITS:
+        raise SimulationError(f"variety must be None or one of {SPLITS}, got {variety!r}")
+    session = SimulatedSession(
+        cfg, seed, int(presses), presses_per_pouch=per_pouch, variety=variety
+    )
     provenance = {
         "source": "sim",
         "simulator": {
@@ -135,6 +148,7 @@ def simulate_dataset(
             "presses_per_pouch": per_pouch,
             "config": cfg.to_dict(),
             "beadsight_version": __version__,
+            **({} if variety is None else {"variety": variety_provenance(session, pouches)}),
         },
         "force": "simulated HX711 scale readings (grams), linearly interpolated to frame times",
         "position": "commanded printer XY, mm from the sensor centre",
@@ -148,6 +162,26 @@ def simulate_dataset(
     ) as writer:
         _record(session, writer, total, progress)
     return out
+
+
+def variety_provenance(session: SimulatedSession, pouches: int) -> dict:
+    """What a variety dataset records of its builds: the split, and each pouch's factors
+    (rounded; omitted past MAX_BUILDS_JSON_BYTES - the session's seed re-draws them:
+    ``SimulatedSession(config, seed, presses, presses_per_pouch=..., variety=split)
+    .pouch_build(i)``). Pouch ``i`` holds presses ``i * presses_per_pouch ...``."""
+    rows = [
+        [
+            float(f"{session.pouch_build(i).factors[name]:.{FACTOR_DIGITS}g}")
+            for name in FACTOR_NAMES
+        ]
+        for i in range(pouches)
+    ]
+    record: dict = {"split": session.variety, "factor_names": list(FACTOR_NAMES)}
+    if len(json.dumps(rows)) <= MAX_BUILDS_JSON_BYTES:
+        record["pouch_factors"] = rows
+    else:
+        record["pouch_factors"] = f"omitted ({pouches} pouches): re-draw them from the seed"
+    return record
 
 
 def _record(

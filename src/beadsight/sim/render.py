@@ -17,7 +17,9 @@ A frame is composed as:
    the beads under a finger together still show the depth continuously rather
    than in a few coarse steps;
 3. the LEDs' illumination and the lens's vignetting (one static gain map), a
-   per-frame brightness flicker, static glare of the LEDs on the acrylic;
+   per-frame brightness flicker, static glare of the LEDs on the acrylic
+   (:mod:`beadsight.sim.light`); a camera mounted, focused or set up unlike the
+   reference build adds its view, exposure and blur (:mod:`beadsight.sim.camera`);
 4. rounding to uint8, sensor noise (pre-generated noise tiles at random offsets,
    added with saturating uint8 arithmetic) and optional MJPG-like JPEG compression.
 
@@ -32,7 +34,9 @@ import math
 import cv2
 import numpy as np
 
+from beadsight.sim.camera import Exposure
 from beadsight.sim.config import SimConfig
+from beadsight.sim.light import led_positions_mm, pixel_mm
 from beadsight.sim.pouch import PouchView
 
 # --- sprite quantisation ------------------------------------------------------------
@@ -66,13 +70,10 @@ BUBBLE_RING = 22.0  # its thick dark ring (total internal reflection)
 BUBBLE_RING_WIDTH = 0.38  # of the radius
 BUBBLE_CENTRE_ALPHA = 0.35
 BUBBLE_RING_ALPHA = 0.92
-LED_COLOUR_RGB = (1.0, 0.97, 0.92)  # warm-white LEDs
-AMBIENT_LIGHT = 0.22  # light scattered inside the housing, relative to the LEDs' peak
 MOTTLE_AMPLITUDE = 5.0  # low-frequency texture of the black cover, radiance units
 MOTTLE_SCALE_MM = 3.0
 SEAM_LEVEL = 85.0  # the pouch's welded seam at the border of the field of view
-GLARE_LEVEL = 9.0  # reflections of the LEDs on the acrylic
-GLARE_SIGMA_MM = 3.0
+_COVER_TINT = np.array([0.92, 0.97, 1.0], np.float32)  # water over black vinyl: slightly cool
 NOISE_TILES = 2  # pre-generated noise fields, sampled at random offsets
 
 
@@ -106,8 +107,7 @@ class SensorRenderer:
         self._background = self._make_background(look)
         # each object's quantisation threshold, part of the pouch's static look
         self._dither = look.random(config.n_beads + config.n_bubbles)
-        self._illumination = self._make_illumination()
-        self._glare = self._make_glare()
+        self._exposure = Exposure(config, self.size, SEAM_LEVEL * _COVER_TINT)
         self._scratch = np.empty((self.size, self.size, 3), np.float32)
         self._noise_pad = max(8, self.size // 4)
         self._noise = noise_tiles(
@@ -126,9 +126,7 @@ class SensorRenderer:
     # --- static layers ----------------------------------------------------------------
     def _pixel_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """x_mm (1, S) of column centres, y_mm (S, 1) of row centres (printer frame)."""
-        centres = (np.arange(self.size) + 0.5) / self.size
-        coord = (0.5 - centres) * self.config.sensor_size_mm
-        return coord[None, :], coord[:, None]
+        return pixel_mm(self.config, self.size)
 
     def _make_background(self, rng: np.random.Generator) -> np.ndarray:
         cfg = self.config
@@ -143,35 +141,8 @@ class SensorRenderer:
         outside = np.maximum(np.abs(x), np.abs(y)) > cfg.pouch_half_mm
         level = np.where(outside, SEAM_LEVEL + 2 * MOTTLE_AMPLITUDE * field, level)
         bg = np.repeat(level[..., None], 3, axis=2).astype(np.float32)
-        bg *= np.array([0.92, 0.97, 1.0], np.float32)  # water over black vinyl: slightly cool
+        bg *= _COVER_TINT
         return np.ascontiguousarray(np.clip(bg, 0, 255))
-
-    def _led_positions_mm(self) -> list[tuple[float, float]]:
-        a = self.config.led_offset_mm
-        return [(sx * a, sy * a) for sx in (-1, 1) for sy in (-1, 1)]
-
-    def _make_illumination(self) -> np.ndarray:
-        cfg = self.config
-        x, y = self._pixel_mm()
-        h = cfg.led_height_mm
-        light = np.zeros((self.size, self.size), np.float64)
-        for lx, ly in self._led_positions_mm():
-            rho2 = (x - lx) ** 2 + (y - ly) ** 2
-            light += h**3 / (rho2 + h * h) ** 1.5  # Lambertian point source, 1 directly below
-        light = light / light.max() + AMBIENT_LIGHT
-        r2 = (x * x + y * y) / (cfg.sensor_size_mm**2 / 2)  # 1 at the image corners
-        light *= 1.0 - cfg.vignetting * r2
-        light /= light.max()
-        illum = light[..., None] * np.asarray(LED_COLOUR_RGB)[None, None, :]
-        return np.ascontiguousarray(illum.astype(np.float32))
-
-    def _make_glare(self) -> np.ndarray:
-        x, y = self._pixel_mm()
-        glare = np.zeros((self.size, self.size), np.float64)
-        for lx, ly in self._led_positions_mm():
-            glare += np.exp(-((x - lx) ** 2 + (y - ly) ** 2) / (2 * GLARE_SIGMA_MM**2))
-        out = GLARE_LEVEL * glare[..., None] * np.asarray(LED_COLOUR_RGB)[None, None, :]
-        return np.ascontiguousarray(np.rint(out).astype(np.uint8))
 
     # --- sprites ------------------------------------------------------------------------
     def _keys(self, view: PouchView) -> tuple[list, ...]:
@@ -262,7 +233,7 @@ class SensorRenderer:
     def _led_q(self) -> np.ndarray:
         """(4, 2) LED positions in normalised image coordinates (row, col), -0.5..0.5."""
         smm = self.config.sensor_size_mm
-        return np.array([(-ly / smm, -lx / smm) for lx, ly in self._led_positions_mm()])
+        return np.array([(-ly / smm, -lx / smm) for lx, ly in led_positions_mm(self.config)])
 
     # --- frames -------------------------------------------------------------------------
     def composite(self, view: PouchView) -> np.ndarray:
@@ -285,9 +256,7 @@ class SensorRenderer:
         gain = 1.0
         if self.config.flicker > 0:
             gain += self.config.flicker * float(self.rng.standard_normal())
-        cv2.multiply(out, self._illumination, dst=out, scale=gain)
-        frame = cv2.convertScaleAbs(out)  # round and saturate to 0..255
-        cv2.add(frame, self._glare, dst=frame)  # uint8 from here: saturating and fast
+        frame = self._exposure(out, gain)
         if self._noise:
             plus, minus = self._noise[int(self.rng.integers(len(self._noise)))]
             oy, ox = (int(v) for v in self.rng.integers(0, self._noise_pad, 2))

@@ -25,6 +25,7 @@ from beadsight.sim.config import SimConfig
 from beadsight.sim.press import Press, PressCycle
 from beadsight.sim.scale import SimulatedScale
 from beadsight.sim.simulator import PouchSimulator
+from beadsight.sim.variety import PouchDistribution, PouchSample
 
 _MIN_STEP_S = 1e-6  # physics steps shorter than this are skipped
 _JITTER_CLIP = 3.0  # frame-time jitter is clipped at this many sigma
@@ -72,9 +73,13 @@ class SimulatedSession:
     sensor-space frames (off: physics and scale only, much faster); raw: also
     render raw fisheye frames. presses_per_pouch: replace the pouch with a fresh one
     (new beads, arrangement, bubbles and look) before every this many presses, as a
-    user swaps the $0.09 pouches (None: one pouch for the whole session). The same
-    seed gives the same session; a finite session's presses are the first presses of
-    the endless one with that seed.
+    user swaps the $0.09 pouches (None: one pouch for the whole session).
+    variety: ``"train"`` or ``"heldout"``: every pouch is a different *build*, drawn
+    from that split of :class:`~beadsight.sim.variety.PouchDistribution` with
+    ``config`` as its base (bead count, light, camera and image vary; rig, scale and
+    timing stay ``config``'s); None: every pouch is ``config``. The same seed gives
+    the same session; a finite session's presses are the first presses of the
+    endless one with that seed.
     """
 
     def __init__(
@@ -86,12 +91,20 @@ class SimulatedSession:
         render: bool = True,
         raw: bool = False,
         presses_per_pouch: int | None = None,
+        variety: str | None = None,
     ):
         self.config = config if config is not None else SimConfig()
         self.seed = seed
-        streams = np.random.SeedSequence(seed).spawn(5)
-        sim_seq, scale_seq, plan_seq, clock_seq, self._pouch_seq = streams
-        self.simulator = PouchSimulator(self.config, sim_seq)
+        # A sixth stream for variety: the first five are those of sessions without it.
+        streams = np.random.SeedSequence(seed).spawn(6)
+        sim_seq, scale_seq, plan_seq, clock_seq, self._pouch_seq, variety_seq = streams
+        self.variety = variety
+        self._builds: list[PouchSample] = []
+        if variety is not None:
+            self._distribution = PouchDistribution(self.config)
+            self._variety_rng = np.random.default_rng(variety_seq)
+            self.pouch_build(0)  # checks the split
+        self.simulator = PouchSimulator(self.pouch_config(0), sim_seq)
         if presses_per_pouch is not None and (
             isinstance(presses_per_pouch, bool) or int(presses_per_pouch) < 1
         ):
@@ -112,6 +125,19 @@ class SimulatedSession:
         else:
             self.presses = list(presses)
         self._started = False
+
+    # --- the pouches ----------------------------------------------------------------------
+    def pouch_build(self, index: int) -> PouchSample:
+        """The build drawn for pouch ``index`` (0-based) of a ``variety`` session."""
+        if self.variety is None:
+            raise ConfigError("pouch_build: this session has no variety (every pouch is config)")
+        while len(self._builds) <= index:  # drawn in order, so the same for every caller
+            self._builds.append(self._distribution.sample(self._variety_rng, self.variety))
+        return self._builds[index]
+
+    def pouch_config(self, index: int) -> SimConfig:
+        """The simulated sensor of pouch ``index``: ``config``, or its drawn build."""
+        return self.config if self.variety is None else self.pouch_build(index).config
 
     # --- the plan -----------------------------------------------------------------------
     def _draw_press(self) -> Press:
@@ -181,8 +207,8 @@ class SimulatedSession:
         n = self.presses_per_pouch
         if n is not None and press_index > 0 and press_index % n == 0:
             (seq,) = self._pouch_seq.spawn(1)
-            self.simulator = PouchSimulator(self.config, seq)
             self.pouch_index += 1
+            self.simulator = PouchSimulator(self.pouch_config(self.pouch_index), seq)
 
     def _run(self) -> Iterator[SimFrame]:
         cfg = self.config

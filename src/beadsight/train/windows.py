@@ -384,6 +384,10 @@ class WindowLoader:
                 # spawn, not fork: a forked worker inherits OpenCV's thread pool and HDF5
                 # state from the parent and can deadlock in them
                 multiprocessing_context=WORKER_START_METHOD if num_workers > 0 else None,
+                # Its own generator: each new iterator (every epoch, validation, a resume)
+                # draws a worker seed from it, not from the global RNG that input noise
+                # and dropout draw from, so a resumed run continues the same stream.
+                generator=torch.Generator().manual_seed(seed * 1000 + rank),
             )
         self.set_epoch(0)
 
