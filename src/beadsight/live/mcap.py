@@ -37,24 +37,28 @@ from tqdm import tqdm
 from beadsight import __version__
 from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError, ConfigError
+from beadsight.live import ros_messages as msg
 from beadsight.live.readings import ReadingLike, open_readings
 from beadsight.live.recorder import DISK_RESERVE_BYTES, PartialWriter
+from beadsight.live.ros_messages import (
+    FRAME_ID,  # noqa: F401 (importable from here, as before)
+    NS_PER_S,
+    image_message,
+    point_message,
+    wrench_message,
+)
 
 logger = logging.getLogger(__name__)
 
-FRAME_ID = "beadsight"
-TOPIC_PRESSURE = "/beadsight/pressure"
-TOPIC_FORCE = "/beadsight/force"
-TOPIC_COP = "/beadsight/cop"
-TOPIC_REFERENCE_FORCE = "/beadsight/reference_force"
-M_PER_MM = 1e-3
+TOPIC_PRESSURE = msg.topic(msg.DEFAULT_NAMESPACE, msg.PRESSURE)
+TOPIC_FORCE = msg.topic(msg.DEFAULT_NAMESPACE, msg.FORCE)
+TOPIC_COP = msg.topic(msg.DEFAULT_NAMESPACE, msg.COP)
+TOPIC_REFERENCE_FORCE = msg.topic(msg.DEFAULT_NAMESPACE, msg.REFERENCE_FORCE)
 CHUNK_BYTES = 1024 * 1024  # messages are compressed and written in chunks of about this size
 MESSAGE_OVERHEAD_BYTES = 512  # most bytes a message adds to an MCAP file beyond its payload
 SUMMARY_BYTES = 16 * 1024  # MCAP summary without chunk indexes (schemas, channels, ...)
 SUMMARY_BYTES_PER_CHUNK = 512  # its chunk index entry per chunk
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-NS_PER_S = 1_000_000_000
-FLOAT32_BYTES = 4
 
 _SEP = "\n" + "=" * 80 + "\n"
 _HEADER = (
@@ -99,44 +103,6 @@ def _require_mcap() -> tuple[Any, Any]:
             "missing): pip install 'beadsight[ros]'"
         ) from None
     return Writer, CompressionType
-
-
-def _header(timestamp_s: float) -> dict[str, Any]:
-    ns = round(timestamp_s * NS_PER_S)
-    return {"stamp": {"sec": ns // NS_PER_S, "nanosec": ns % NS_PER_S}, "frame_id": FRAME_ID}
-
-
-def image_message(pressure_kpa: np.ndarray, timestamp_s: float) -> dict[str, Any]:
-    """``sensor_msgs/msg/Image`` (32FC1, kPa) for an (H, W) map."""
-    data = np.ascontiguousarray(pressure_kpa, dtype="<f4")
-    h, w = data.shape
-    return {
-        "header": _header(timestamp_s),
-        "height": h,
-        "width": w,
-        "encoding": "32FC1",
-        "is_bigendian": 0,
-        "step": w * FLOAT32_BYTES,
-        "data": data.tobytes(),
-    }
-
-
-def wrench_message(force_n: float, timestamp_s: float) -> dict[str, Any]:
-    """``geometry_msgs/msg/WrenchStamped`` with force.z = total normal force (N)."""
-    zero = {"x": 0.0, "y": 0.0, "z": 0.0}
-    return {
-        "header": _header(timestamp_s),
-        "wrench": {"force": {"x": 0.0, "y": 0.0, "z": float(force_n)}, "torque": zero},
-    }
-
-
-def point_message(cop_mm: np.ndarray, timestamp_s: float) -> dict[str, Any]:
-    """``geometry_msgs/msg/PointStamped``: centre of pressure (x, y) mm -> metres, z = 0."""
-    x_mm, y_mm = (float(v) for v in np.asarray(cop_mm).reshape(2))
-    return {
-        "header": _header(timestamp_s),
-        "point": {"x": x_mm * M_PER_MM, "y": y_mm * M_PER_MM, "z": 0.0},
-    }
 
 
 class _CountedFile:

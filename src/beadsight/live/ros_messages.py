@@ -15,7 +15,8 @@ topic (under the namespace) type                                  content
 ``cop``                    ``geometry_msgs/msg/PointStamped``     centre of pressure, m (only when
                                                                   the map has pressure)
 ``contact_area``           ``std_msgs/msg/Float32``               contact area, m^2
-``health``                 ``diagnostic_msgs/msg/DiagnosticArray`` the sensor's state and figures
+``health``                 ``diagnostic_msgs/msg/DiagnosticArray`` the sensor's state and its
+                                                                  health with figures
 ``camera``                 ``sensor_msgs/msg/Image``              model-input frame, ``rgb8``
 ``reference_force``        ``geometry_msgs/msg/WrenchStamped``    true force when the source knows
                                                                   it (the simulator)
@@ -28,6 +29,7 @@ is printer +Y, column 0 printer +X (see ``beadsight.geometry.mm_to_px``).
 
 from __future__ import annotations
 
+import math
 import re
 from typing import Any
 
@@ -53,6 +55,18 @@ FLOAT32_BYTES = 4
 
 # diagnostic_msgs/msg/DiagnosticStatus levels
 DIAGNOSTIC_OK, DIAGNOSTIC_WARN, DIAGNOSTIC_ERROR, DIAGNOSTIC_STALE = 0, 1, 2, 3
+SENSOR_STATUS = "beadsight: sensor"  # DiagnosticStatus.name of the sensor's state
+HEALTH_STATUS = "beadsight: health"  # DiagnosticStatus.name of its drift health
+SENSOR_LEVELS = {  # LiveStatus.state -> level (others: WARN)
+    "starting": DIAGNOSTIC_OK,
+    "ok": DIAGNOSTIC_OK,
+    "warming_up": DIAGNOSTIC_OK,
+    "no_signal": DIAGNOSTIC_STALE,
+    "ended": DIAGNOSTIC_STALE,
+    "stopped": DIAGNOSTIC_STALE,
+    "error": DIAGNOSTIC_ERROR,
+}
+HEALTH_LEVELS = {"ok": DIAGNOSTIC_OK, "drifting": DIAGNOSTIC_WARN, "recalibrate": DIAGNOSTIC_ERROR}
 
 _ROS_NAMESPACE = re.compile(r"^(/[A-Za-z][A-Za-z0-9_]*)+$")
 
@@ -131,19 +145,74 @@ def area_message(contact_area_mm2: float) -> dict[str, Any]:
     return {"data": float(contact_area_mm2) * M2_PER_MM2}
 
 
-def diagnostics_message(
-    level: int, message: str, values: dict[str, Any], timestamp_s: float
-) -> dict[str, Any]:
-    """``diagnostic_msgs/msg/DiagnosticArray`` with one status named ``beadsight``."""
+def finite_or_none(value: Any) -> Any:
+    """A figure for JSON and text: finite numbers as float/int, NaN/inf as None, bools and
+    strings as they are, anything else as its ``str``."""
+    if isinstance(value, (bool, str)) or value is None:
+        return value
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return str(value)
+
+
+def health_report(status: Any, health: Any, timestamp_s: float) -> dict[str, Any]:
+    """What the health topic carries: the sensor's state and, when it is tracked, its health.
+
+    status: a :class:`~beadsight.live.listeners.LiveStatus` (state, message, since_s), or
+        None before the first one.
+    health: the newest update's health (``.state`` one of :data:`HEALTH_LEVELS`,
+        ``.figures`` a dict of named numbers, optionally ``.message``: what to do), or None
+        where health is not tracked.
+    Returns a JSON-ready dict: ``state``/``message``/``figures`` of the health (None, "",
+    {} without one) and ``sensor_state``/``sensor_message``/``sensor_since_s``.
+    """
+    figures = dict(getattr(health, "figures", None) or {}) if health is not None else {}
     return {
-        "header": header(timestamp_s),
-        "status": [
-            {
-                "level": int(level),
-                "name": FRAME_ID,
-                "message": message,
-                "hardware_id": FRAME_ID,
-                "values": [{"key": str(k), "value": str(v)} for k, v in values.items()],
-            }
-        ],
+        "timestamp_s": float(timestamp_s),
+        "state": None if health is None else str(health.state),
+        "message": "" if health is None else str(getattr(health, "message", "") or ""),
+        "figures": {str(k): finite_or_none(v) for k, v in figures.items()},
+        "sensor_state": "starting" if status is None else status.state,
+        "sensor_message": "" if status is None else status.message,
+        "sensor_since_s": None if status is None else float(status.since_s),
     }
+
+
+def _diagnostic_status(level: int, name: str, message: str, values: dict) -> dict[str, Any]:
+    """``diagnostic_msgs/msg/DiagnosticStatus`` (values as text, as ROS 2 has them)."""
+    return {
+        "level": int(level),
+        "name": name,
+        "message": message,
+        "hardware_id": FRAME_ID,
+        "values": [{"key": k, "value": "" if v is None else str(v)} for k, v in values.items()],
+    }
+
+
+def diagnostics_message(report: dict[str, Any]) -> dict[str, Any]:
+    """``diagnostic_msgs/msg/DiagnosticArray`` of a :func:`health_report`: the status
+    :data:`SENSOR_STATUS` (level from the sensor's state) and, when health is tracked,
+    :data:`HEALTH_STATUS` (ok: OK, drifting: WARN, recalibrate: ERROR; its figures as
+    values)."""
+    sensor_state = report["sensor_state"]
+    statuses = [
+        _diagnostic_status(
+            SENSOR_LEVELS.get(sensor_state, DIAGNOSTIC_WARN),
+            SENSOR_STATUS,
+            report["sensor_message"] or sensor_state,
+            {"state": sensor_state, "since_s": report["sensor_since_s"]},
+        )
+    ]
+    state = report["state"]
+    if state is not None:
+        statuses.append(
+            _diagnostic_status(
+                HEALTH_LEVELS.get(state, DIAGNOSTIC_WARN),
+                HEALTH_STATUS,
+                report["message"] or state,
+                {"state": state, **report["figures"]},
+            )
+        )
+    return {"header": header(report["timestamp_s"]), "status": statuses}
