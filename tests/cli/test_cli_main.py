@@ -14,7 +14,7 @@ import pytest
 from beadsight.cli import build_parser, command_name, main
 from beadsight.cli.options import field_values
 
-HEAVY = ("torch", "numpy", "cv2", "h5py", "scipy")
+HEAVY = ("torch", "numpy", "cv2", "h5py", "scipy", "cyclonedds", "foxglove")
 # `beadsight ARGS` in a fresh child process; prints the heavy modules it loaded.
 HELP_PROBE = """
 import json, sys
@@ -56,6 +56,7 @@ def test_help_of_beadsight_and_every_command_imports_no_torch():
     for name in commands:
         heavy = _heavy_modules_of([name, "--help"])
         assert "torch" not in heavy, f"beadsight {name} --help imports torch"
+        assert not {"cyclonedds", "foxglove"} & set(heavy), f"beadsight {name} --help: {heavy}"
         if name in ("train", "demo", "evaluate", "predict", "export", "info", "simulate"):
             assert heavy == [], f"beadsight {name} --help imports {heavy}"
 

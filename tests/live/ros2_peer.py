@@ -5,13 +5,14 @@ The message types below are written from the ROS 2 interface definitions
 Wrench, WrenchStamped, Point, PointStamped, std_msgs/Float32, diagnostic_msgs/KeyValue,
 DiagnosticStatus, DiagnosticArray) with the DDS names ROS 2's rosidl generates, not
 taken from beadsight. It subscribes the way ROS 2 nodes do: the sensor-data profile
-(best effort, keep last 5) on the maps and the default profile (reliable, keep last 10)
-on force, and prints one JSON line per message received.
+(best effort, keep last 5) on the images and the CoP, the default profile (reliable,
+keep last 10) on the rest, and prints one JSON line per message received. It stops
+after SECONDS, or once the health topic reports the sensor ended or stopped.
 
-    python ros2_peer.py DOMAIN NAMESPACE SECONDS
+    python ros2_peer.py DOMAIN NAMESPACE SECONDS [--camera]
+
+(No ``from __future__ import annotations``: Cyclone reads these classes' annotations.)
 """
-
-from __future__ import annotations
 
 import hashlib
 import json
@@ -22,6 +23,7 @@ from dataclasses import dataclass
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl.types import byte, float32, float64, int32, sequence, uint8, uint32
+from cyclonedds.internal import InvalidSample
 from cyclonedds.qos import Policy, Qos
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -123,57 +125,102 @@ def stamp(h: Header) -> float:
     return h.stamp.sec + h.stamp.nanosec * 1e-9
 
 
-def summary(name: str, m) -> dict:
-    if name == "pressure":
-        data = bytes(m.data)
-        return {
-            "t": stamp(m.header),
-            "frame": m.header.frame_id,
-            "enc": m.encoding,
-            "h": m.height,
-            "w": m.width,
-            "step": m.step,
-            "big": m.is_bigendian,
-            "sha": hashlib.sha256(data).hexdigest(),
-            "len": len(data),
-        }
-    if name == "force":
-        f = m.wrench.force
-        return {"t": stamp(m.header), "frame": m.header.frame_id, "fx": f.x, "fy": f.y, "fz": f.z}
-    if name == "cop":
-        return {"t": stamp(m.header), "x": m.point.x, "y": m.point.y, "z": m.point.z}
-    if name == "contact_area":
-        return {"area_m2": m.data}
-    if name == "health":
-        s = m.status[0]
-        return {
-            "level": s.level,
-            "name": s.name,
-            "message": s.message,
-            "values": {kv.key: kv.value for kv in s.values},
-        }
-    raise KeyError(name)
+def _image(m: Image) -> dict:
+    data = bytes(m.data)
+    return {
+        "t": stamp(m.header),
+        "frame": m.header.frame_id,
+        "enc": m.encoding,
+        "h": m.height,
+        "w": m.width,
+        "step": m.step,
+        "big": m.is_bigendian,
+        "sha": hashlib.sha256(data).hexdigest(),
+        "len": len(data),
+    }
+
+
+def _wrench(m: WrenchStamped) -> dict:
+    f, q = m.wrench.force, m.wrench.torque
+    return {
+        "t": stamp(m.header),
+        "frame": m.header.frame_id,
+        "force": [f.x, f.y, f.z],
+        "torque": [q.x, q.y, q.z],
+    }
+
+
+def _diagnostics(m: DiagnosticArray) -> dict:
+    return {
+        "t": stamp(m.header),
+        "frame": m.header.frame_id,
+        "status": [
+            {
+                "level": s.level,
+                "name": s.name,
+                "message": s.message,
+                "hardware_id": s.hardware_id,
+                "values": {kv.key: kv.value for kv in s.values},
+            }
+            for s in m.status
+        ],
+    }
+
+
+SUMMARIES = {
+    "pressure": _image,
+    "camera": _image,
+    "force": _wrench,
+    "reference_force": _wrench,
+    "cop": lambda m: {
+        "t": stamp(m.header),
+        "frame": m.header.frame_id,
+        "point": [m.point.x, m.point.y, m.point.z],
+    },
+    "contact_area": lambda m: {"area_m2": m.data},
+    "health": _diagnostics,
+}
+TOPICS = {  # name -> (type, QoS of the subscription)
+    "pressure": (Image, SENSOR_DATA),
+    "force": (WrenchStamped, DEFAULT),
+    "cop": (PointStamped, SENSOR_DATA),
+    "contact_area": (Float32, DEFAULT),
+    "health": (DiagnosticArray, DEFAULT),
+    "reference_force": (WrenchStamped, DEFAULT),
+    "camera": (Image, SENSOR_DATA),
+}
+ENDED = ("ended", "stopped", "error")
+
+
+def drain(readers: dict) -> bool:
+    """Print what arrived; True once the health topic says the sensor ended."""
+    ended = False
+    for name, reader in readers.items():
+        for m in reader.take(N=64):
+            if isinstance(m, InvalidSample):  # the writer went away (no data)
+                continue
+            print(json.dumps({"topic": name, **SUMMARIES[name](m)}), flush=True)
+            if name == "health":
+                values = {kv.key: kv.value for kv in m.status[0].values}
+                ended |= values.get("state") in ENDED
+    return ended
 
 
 def main() -> None:
     domain, namespace, seconds = int(sys.argv[1]), sys.argv[2], float(sys.argv[3])
+    names = [n for n in TOPICS if n != "camera" or "--camera" in sys.argv[4:]]
     dp = DomainParticipant(domain)
     readers = {}
-    for name, cls, qos in (
-        ("pressure", Image, SENSOR_DATA),
-        ("force", WrenchStamped, DEFAULT),
-        ("cop", PointStamped, SENSOR_DATA),
-        ("contact_area", Float32, DEFAULT),
-        ("health", DiagnosticArray, DEFAULT),
-    ):
-        topic = Topic(dp, f"rt{namespace}/{name}", cls)
-        readers[name] = DataReader(dp, topic, qos=qos)
+    for name in names:
+        cls, qos = TOPICS[name]
+        readers[name] = DataReader(dp, Topic(dp, f"rt{namespace}/{name}", cls), qos=qos)
     print(json.dumps({"ready": True}), flush=True)
     end = time.monotonic() + seconds
     while time.monotonic() < end:
-        for name, reader in readers.items():
-            for m in reader.take(N=64):
-                print(json.dumps({"topic": name, **summary(name, m)}), flush=True)
+        if drain(readers):  # what was written before the end may still be on its way
+            time.sleep(0.3)
+            drain(readers)
+            break
         time.sleep(0.01)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -56,20 +57,20 @@ def check_messages(messages: dict[str, list], readings: list) -> None:
     for r, (schema, log_ns, image) in zip(readings, messages[TOPIC_PRESSURE], strict=True):
         assert schema == "sensor_msgs/msg/Image"
         assert image.header.frame_id == FRAME_ID
-        assert stamp_ns(image.header) == log_ns == round(r.timestamp_s * 1e9)
+        assert stamp_ns(image.header) == log_ns == round(Fraction(r.timestamp_s) * 10**9)
         assert (image.encoding, image.height, image.width) == ("32FC1", 64, 64)
         assert image.is_bigendian == 0 and image.step == 64 * 4
         kpa = np.frombuffer(bytes(image.data), "<f4").reshape(64, 64)
         np.testing.assert_array_equal(kpa, r.pressure_kpa)
     for r, (schema, log_ns, wrench) in zip(readings, messages[TOPIC_FORCE], strict=True):
         assert schema == "geometry_msgs/msg/WrenchStamped"
-        assert stamp_ns(wrench.header) == log_ns == round(r.timestamp_s * 1e9)
+        assert stamp_ns(wrench.header) == log_ns == round(Fraction(r.timestamp_s) * 10**9)
         assert wrench.wrench.force.z == pytest.approx(r.force_n, rel=1e-6)
         assert (wrench.wrench.force.x, wrench.wrench.torque.z) == (0.0, 0.0)
     for r, (schema, _log, point) in zip(with_cop, messages.get(TOPIC_COP, []), strict=True):
         assert schema == "geometry_msgs/msg/PointStamped"
         assert point.header.frame_id == FRAME_ID
-        assert stamp_ns(point.header) == round(r.timestamp_s * 1e9)
+        assert stamp_ns(point.header) == round(Fraction(r.timestamp_s) * 10**9)
         # ROS uses metres
         assert point.point.x == pytest.approx(r.cop_mm[0] * 1e-3, rel=1e-5)
         assert point.point.y == pytest.approx(r.cop_mm[1] * 1e-3, rel=1e-5)

@@ -13,7 +13,8 @@ def register(commands) -> None:
         description="Run a checkpoint on frames from a camera, a video file or the simulator "
         "at the camera rate. Serves a web viewer (camera, kPa map, force trace, rate and "
         "latency, record button) and a TCP stream of readings for robot programs "
-        "(docs/live.md); --output records readings to HDF5 or MCAP.",
+        "(docs/live.md); --ros2 publishes ROS 2 topics, --foxglove serves Foxglove; "
+        "--output records readings to HDF5 or MCAP.",
         arguments=_live_arguments,
         run=run_live_command,
     )
@@ -67,6 +68,7 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loop", action="store_true", help="restart a video file at its end")
     p.add_argument("--seed", type=int, default=None, help="simulator seed")
     _output_arguments(p)
+    _robot_arguments(p)
     p.add_argument(
         "--output",
         type=Path,
@@ -110,6 +112,55 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _robot_arguments(p: argparse.ArgumentParser) -> None:
+    """ROS 2 topics over DDS and the Foxglove WebSocket server (docs/live.md)."""
+    from beadsight.cli.options import add_option
+    from beadsight.live.foxglove import DEFAULT_PORT as FOXGLOVE_PORT
+    from beadsight.live.ros_messages import DEFAULT_NAMESPACE
+
+    g = p.add_argument_group(
+        "ROS 2 and Foxglove", "need the 'ros' extra: pip install 'beadsight[ros]'"
+    )
+    g.add_argument(
+        "--ros2",
+        action="store_true",
+        help="publish ROS 2 topics (pressure, force, cop, contact_area, health) with Cyclone "
+        "DDS, no ROS install needed; any ROS 2 node on the network receives them",
+    )
+    g.add_argument(
+        "--ros-domain",
+        type=int,
+        default=None,
+        metavar="N",
+        help="ROS 2 domain id 0..232 (default: $ROS_DOMAIN_ID, else 0)",
+    )
+    add_option(
+        g,
+        "--ros-namespace",
+        DEFAULT_NAMESPACE,
+        "namespace of the ROS 2 topics and Foxglove channels",
+    )
+    g.add_argument(
+        "--ros-camera",
+        action="store_true",
+        help="also publish the model-input camera frame (<namespace>/camera, rgb8)",
+    )
+    g.add_argument(
+        "--foxglove",
+        action="store_true",
+        help="serve camera, pressure map, force, CoP and health to Foxglove (app or web) "
+        "over WebSocket on --host; layout: docs/foxglove-layout.json",
+    )
+    add_option(g, "--foxglove-port", FOXGLOVE_PORT, "Foxglove WebSocket port (0 = any free port)")
+
+
+def _ros2_options(args: argparse.Namespace) -> dict:
+    from beadsight.live.ros2 import domain_from_environment
+
+    domain = args.ros_domain if args.ros_domain is not None else domain_from_environment()
+    return {"namespace": args.ros_namespace, "domain_id": domain, "camera": args.ros_camera}
+
+
 def run_live_command(args: argparse.Namespace) -> int:
     from beadsight.cli.options import given
     from beadsight.live.run import run_live
@@ -136,6 +187,10 @@ def run_live_command(args: argparse.Namespace) -> int:
         },
         stream_port=None if args.no_stream else args.stream_port,
         stream_options={"max_age_s": args.stream_max_age},
+        ros2=args.ros2,
+        ros2_options=_ros2_options(args) if args.ros2 else None,
+        foxglove_port=args.foxglove_port if args.foxglove else None,
+        foxglove_options={"max_kpa": args.max_kpa, "namespace": args.ros_namespace},
         output=args.output,
         overwrite=args.overwrite,
         duration_s=args.duration,

@@ -18,7 +18,12 @@ def __getattr__(name: str) -> Any:
     if name.startswith("__"):
         raise AttributeError(name)
     import importlib
+    import importlib.util
 
+    if importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        # `from beadsight.live import ros_messages` asks for an attribute first: a submodule
+        # is imported as such (searching sensor and run would import torch)
+        return importlib.import_module(f"{__name__}.{name}")
     from beadsight._compat import deprecated
 
     for module_name in ("beadsight.live.sensor", "beadsight.live.run"):

@@ -22,9 +22,8 @@ Logging runs on its own thread (a slow client never slows sensing).
 
 from __future__ import annotations
 
-import json
+import inspect
 import math
-import time
 from typing import Any
 
 import numpy as np
@@ -33,9 +32,10 @@ from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.live import ros_messages as msg
 from beadsight.live.publisher import DEFAULT_QUEUE_SIZE, BackgroundPublisher
+from beadsight.live.viewer.server import DEFAULT_MAX_KPA, colormap_bgr
 
 DEFAULT_PORT = 8766  # 8765 is the TCP readings stream
-DEFAULT_MAX_KPA = 40.0  # top of the colour scale of pressure_image
+MAX_PORT = 65535
 PRESSURE_IMAGE = "pressure_image"
 READING = "reading"
 
@@ -60,12 +60,19 @@ READING_SCHEMA = {
 HEALTH_SCHEMA = {
     "type": "object",
     "properties": {
-        "state": {"type": "string"},
-        "message": {"type": "string"},
-        "since_s": {"type": "number"},
-        "figures": {"type": "object"},
+        "timestamp_s": {"type": "number", "description": "when the report was made, unix s"},
+        "state": {
+            "type": ["string", "null"],
+            "description": "health: ok, drifting or recalibrate (null: not tracked)",
+        },
+        "message": {"type": "string", "description": "what the health state means, what to do"},
+        "figures": {"type": "object", "description": "the figures behind the health state"},
+        "sensor_state": {"type": "string", "description": "the sensor's state (ok, no_signal...)"},
+        "sensor_message": {"type": "string"},
+        "sensor_since_s": {"type": ["number", "null"], "description": "since when, unix s"},
     },
 }
+HEALTH_STATUS_ID = "beadsight-health"  # the Foxglove app's problem entry for poor health
 
 
 def _require_foxglove() -> Any:
@@ -79,11 +86,32 @@ def _require_foxglove() -> Any:
     return foxglove
 
 
+def check_options(**options: Any) -> dict[str, Any]:
+    """Refuse now what ``FoxgloveServer(geometry, **options)`` would refuse later (the SDK
+    not installed, a bad port, colour scale or namespace, an unknown option); returns
+    ``options``."""
+    try:
+        bound = inspect.signature(FoxgloveServer).bind(None, **options)
+    except TypeError as e:
+        raise BeadSightError(f"Foxglove options {sorted(options)}: {e}") from None
+    bound.apply_defaults()
+    _check(bound.arguments["port"], bound.arguments["max_kpa"], bound.arguments["namespace"])
+    _require_foxglove()
+    return options
+
+
+def _check(port: int, max_kpa: float, namespace: str) -> None:
+    if not 0 <= port <= MAX_PORT:
+        raise BeadSightError(f"Foxglove port {port}: expected 0..{MAX_PORT} (0: any free port)")
+    if not max_kpa > 0:
+        raise BeadSightError(f"Foxglove max_kpa {max_kpa}: expected > 0 kPa")
+    msg.check_namespace(namespace)
+
+
 def _timestamp(t_s: float) -> Any:
     from foxglove.messages import Timestamp
 
-    ns = round(t_s * msg.NS_PER_S)
-    return Timestamp(ns // msg.NS_PER_S, ns % msg.NS_PER_S)
+    return Timestamp(*msg.stamp(t_s))
 
 
 def _finite(x: float) -> float | None:
@@ -113,10 +141,7 @@ class FoxgloveServer(BackgroundPublisher):
         from foxglove.channels import GridChannel, RawImageChannel
         from foxglove.messages import PackedElementField, PackedElementFieldNumericType
 
-        from beadsight.live.viewer.server import colormap_bgr
-
-        if not max_kpa > 0:
-            raise BeadSightError(f"max_kpa must be > 0, got {max_kpa}")
+        _check(port, max_kpa, namespace)
         self.geometry, self.max_kpa = geometry, max_kpa
         self._lut_rgb = colormap_bgr()[:, ::-1].copy()
         self._field = PackedElementField(
@@ -135,7 +160,7 @@ class FoxgloveServer(BackgroundPublisher):
         self._pressure = GridChannel(topic(msg.PRESSURE), context=ctx)
         self._pressure_image = RawImageChannel(topic(PRESSURE_IMAGE), context=ctx)
         self._reading = fox.Channel(topic(READING), schema=READING_SCHEMA, context=ctx)
-        self._health = fox.Channel(topic(msg.HEALTH), schema=HEALTH_SCHEMA, context=ctx)
+        self._health_channel = fox.Channel(topic(msg.HEALTH), schema=HEALTH_SCHEMA, context=ctx)
         super().__init__(queue_size)
 
     @property
@@ -150,7 +175,7 @@ class FoxgloveServer(BackgroundPublisher):
                 self._pressure,
                 self._pressure_image,
                 self._reading,
-                self._health,
+                self._health_channel,
             )
         ]
 
@@ -194,7 +219,7 @@ class FoxgloveServer(BackgroundPublisher):
     def publish(self, update: Any) -> None:
         r = update.reading
         t = float(r.timestamp_s)
-        t_ns = round(t * msg.NS_PER_S)
+        t_ns = msg.unix_ns(t)
         self._camera.log(self._raw_image(update.frame_rgb, t), log_time=t_ns)
         self._pressure.log(self._grid(r.pressure_kpa, t), log_time=t_ns)
         levels = len(self._lut_rgb) - 1
@@ -217,17 +242,20 @@ class FoxgloveServer(BackgroundPublisher):
         }
         self._reading.log(reading, log_time=t_ns)
 
-    def publish_status(self, status: Any) -> None:
-        figures = getattr(status, "figures", None) or {}
-        self._health.log(
-            {
-                "state": status.state,
-                "message": status.message,
-                "since_s": status.since_s,
-                "figures": json.loads(json.dumps(figures, default=str)),
-            },
-            log_time=time.time_ns(),
+    def publish_health(self, report: dict[str, Any]) -> None:
+        """The report on ``/beadsight/health``; poor health also shows as a problem in the
+        Foxglove app (warning: drifting, error: recalibrate)."""
+        from foxglove import StatusLevel
+
+        self._health_channel.log(report, log_time=msg.unix_ns(report["timestamp_s"]))
+        level = {"drifting": StatusLevel.Warning, "recalibrate": StatusLevel.Error}.get(
+            report["state"]
         )
+        if level is not None:
+            text = f"beadsight health: {report['state']}. {report['message']}".strip()
+            self._server.publish_status(text, level, HEALTH_STATUS_ID)
+        else:
+            self._server.remove_status([HEALTH_STATUS_ID])
 
     def close(self) -> None:
         self._server.stop()

@@ -42,9 +42,9 @@ from beadsight.live.readings import ReadingLike, open_readings
 from beadsight.live.recorder import DISK_RESERVE_BYTES, PartialWriter
 from beadsight.live.ros_messages import (
     FRAME_ID,  # noqa: F401 (importable from here, as before)
-    NS_PER_S,
     image_message,
     point_message,
+    unix_ns,
     wrench_message,
 )
 
@@ -261,7 +261,7 @@ class McapReadingsWriter(PartialWriter):
             self._written = self._count  # the clean stop below writes the open chunk
             free_kib = (max(room, 0) + DISK_RESERVE_BYTES) // 1024
             self._fail(f"disk full ({free_kib} KiB free, too little for the next reading)")
-        t_ns = round(float(reading.timestamp_s) * NS_PER_S)
+        t_ns = unix_ns(float(reading.timestamp_s))
         self._guard(lambda: self._write_messages(messages, t_ns))
         self._count += 1
 

@@ -3,29 +3,38 @@
 The sensing thread calls :meth:`BackgroundPublisher.push` for every reading; it only
 stores the update (keeping the newest :attr:`queue_size`, counting the ones it drops)
 and returns. A worker thread hands updates to :meth:`publish`, which subclasses
-implement (ROS 2 over DDS, the Foxglove WebSocket server, ...).
+implement (ROS 2 over DDS, the Foxglove WebSocket server, ...), and the sensor's state
+and health to :meth:`publish_health`: at once when the sensor's state or the health
+state changes, else every :data:`HEALTH_PERIOD_S` while readings flow.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
+import time
 from collections import deque
 from typing import Any
+
+from beadsight.live.ros_messages import health_report
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_QUEUE_SIZE = 4  # updates waiting for the worker before the oldest is dropped
 FINISH_TIMEOUT_S = 5.0  # finish() waits this long for the worker to drain
+HEALTH_PERIOD_S = 1.0  # the health topic repeats this often while readings flow (ROS: 1 Hz)
 
 
 class BackgroundPublisher:
-    """Base for listeners (see ``beadsight.live.sensor.LiveListener``) that publish slowly.
+    """Base for listeners (see ``beadsight.live.listeners.LiveListener``) that publish slowly.
 
     Subclasses implement :meth:`publish` (one ``LiveUpdate``), optionally
-    :meth:`publish_status` (a ``LiveStatus``) and :meth:`close` (release resources,
-    called on the worker thread after the last publish). ``published`` and ``dropped``
-    count updates; ``errors`` counts publish calls that raised (each is logged).
+    :meth:`publish_health` (a :func:`~beadsight.live.ros_messages.health_report`) and
+    :meth:`close` (release resources, called on the worker thread after the last
+    publish). ``published`` and ``dropped`` count updates; ``errors`` counts publish
+    calls that raised (each is logged). An update's health is its ``health`` attribute
+    (``.state``, ``.figures``), where the sensor tracks it.
     """
 
     name = "publisher"
@@ -37,6 +46,10 @@ class BackgroundPublisher:
         self._statuses: deque[Any] = deque(maxlen=queue_size)
         self._cond = threading.Condition()
         self._finished = False
+        self._status: Any = None  # the newest LiveStatus (worker thread only)
+        self._latest_health: Any = None  # the newest update's health (None: not tracked)
+        self._health_state: Any = None  # health state last published
+        self._health_due = -math.inf  # time.monotonic() of the next periodic health
         self.published = 0
         self.dropped = 0
         self.errors = 0
@@ -59,7 +72,7 @@ class BackgroundPublisher:
             self._cond.notify()
 
     def finish(self) -> None:
-        """Publish what is waiting, then stop the worker and :meth:`close`."""
+        """Publish what is waiting, then stop the worker and :meth:`close` (idempotent)."""
         with self._cond:
             self._finished = True
             self._cond.notify()
@@ -70,8 +83,8 @@ class BackgroundPublisher:
     def publish(self, update: Any) -> None:
         raise NotImplementedError
 
-    def publish_status(self, status: Any) -> None:
-        """Publish a change of the sensor's state (default: nothing)."""
+    def publish_health(self, report: dict[str, Any]) -> None:
+        """Publish the sensor's state and health (default: nothing)."""
 
     def close(self) -> None:
         """Release what the publisher holds (default: nothing)."""
@@ -96,14 +109,29 @@ class BackgroundPublisher:
             logger.exception("%s: publishing failed", self.name)
             return False
 
+    def _report_health(self, changed: bool, update: Any | None) -> None:
+        """Publish the health report if the sensor's state (``changed``) or the health
+        state changed, or, while readings flow, every :data:`HEALTH_PERIOD_S`."""
+        if update is not None:
+            self._latest_health = getattr(update, "health", None)
+            changed = changed or getattr(self._latest_health, "state", None) != self._health_state
+        now = time.monotonic()
+        if not changed and (update is None or now < self._health_due):
+            return
+        self._health_state = getattr(self._latest_health, "state", None)
+        self._health_due = now + HEALTH_PERIOD_S
+        report = health_report(self._status, self._latest_health, time.time())
+        self._guarded(self.publish_health, report)
+
     def _work(self) -> None:
         try:
             while True:
                 statuses, update, done = self._next()
-                for status in statuses:
-                    self._guarded(self.publish_status, status)
+                if statuses:
+                    self._status = statuses[-1]
                 if update is not None and self._guarded(self.publish, update):
                     self.published += 1
+                self._report_health(bool(statuses), update)
                 if done:
                     return
         finally:

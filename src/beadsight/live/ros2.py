@@ -19,10 +19,13 @@ readings (counted in ``dropped``) instead of slowing sensing.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import logging
-import time
+import os
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,27 +40,71 @@ logger = logging.getLogger(__name__)
 HISTORY_DEPTH = 5  # samples the writer keeps for late acknowledgements
 MAX_BLOCKING_S = 0.05  # a reliable write waits at most this long for a slow reader
 DDS_TOPIC_PREFIX = "rt"  # ROS 2 maps topic /a/b to DDS topic rt/a/b
+MAX_DOMAIN_ID = 232  # the highest ROS_DOMAIN_ID whose DDS ports fit (ROS 2 docs: Linux)
+DOMAIN_ENV = "ROS_DOMAIN_ID"
+MISSING = "--ros2 needs Cyclone DDS (the 'cyclonedds' package): pip install 'beadsight[ros]'"
 
-STATUS_LEVELS = {
-    "starting": msg.DIAGNOSTIC_OK,
-    "ok": msg.DIAGNOSTIC_OK,
-    "warming_up": msg.DIAGNOSTIC_OK,
-    "no_signal": msg.DIAGNOSTIC_STALE,
-    "ended": msg.DIAGNOSTIC_STALE,
-    "stopped": msg.DIAGNOSTIC_STALE,
-    "error": msg.DIAGNOSTIC_ERROR,
+TOPIC_TYPES = {  # topic name (under the namespace) -> ROS 2 type, as in ros_messages
+    msg.PRESSURE: "sensor_msgs/msg/Image",
+    msg.FORCE: "geometry_msgs/msg/WrenchStamped",
+    msg.COP: "geometry_msgs/msg/PointStamped",
+    msg.CONTACT_AREA: "std_msgs/msg/Float32",
+    msg.HEALTH: "diagnostic_msgs/msg/DiagnosticArray",
+    msg.REFERENCE_FORCE: "geometry_msgs/msg/WrenchStamped",
+    msg.CAMERA: "sensor_msgs/msg/Image",
 }
 
 
+def require_cyclonedds() -> None:
+    """Raise a one-line :class:`BeadSightError` naming the extra if Cyclone DDS is missing."""
+    try:
+        import cyclonedds.domain  # noqa: F401
+    except ImportError:
+        raise BeadSightError(MISSING) from None
+
+
+def check_domain(domain_id: int, where: str = "ROS domain id") -> int:
+    if not 0 <= domain_id <= MAX_DOMAIN_ID:
+        raise BeadSightError(f"{where} {domain_id}: expected 0..{MAX_DOMAIN_ID}")
+    return domain_id
+
+
+def domain_from_environment(environ: Mapping[str, str] = os.environ) -> int:
+    """The ROS 2 domain as ROS 2 nodes pick it: ``$ROS_DOMAIN_ID`` if set, else 0."""
+    text = environ.get(DOMAIN_ENV, "").strip()
+    if not text:
+        return 0
+    try:
+        value = int(text)
+    except ValueError:
+        raise BeadSightError(
+            f"{DOMAIN_ENV}={text!r}: expected an integer 0..{MAX_DOMAIN_ID}"
+        ) from None
+    return check_domain(value, DOMAIN_ENV)
+
+
+def check_options(**options: Any) -> dict[str, Any]:
+    """Refuse now what ``Ros2Publisher(**options)`` would refuse later (Cyclone DDS not
+    installed, a bad namespace or domain, an unknown option); returns ``options``."""
+    try:
+        bound = inspect.signature(Ros2Publisher).bind(**options)
+    except TypeError as e:
+        raise BeadSightError(f"ROS 2 options {sorted(options)}: {e}") from None
+    bound.apply_defaults()
+    msg.check_namespace(bound.arguments["namespace"])
+    check_domain(bound.arguments["domain_id"])
+    require_cyclonedds()
+    return options
+
+
+@functools.cache
 def _types() -> dict[str, Any]:
     """The ROS 2 message types as Cyclone DDS IDL structs (imported on first use)."""
     try:
         from cyclonedds.idl import IdlStruct
         from cyclonedds.idl.types import byte, float32, float64, int32, sequence, uint8, uint32
     except ImportError:
-        raise BeadSightError(
-            "--ros2 needs Cyclone DDS (the 'cyclonedds' package): pip install 'beadsight[ros]'"
-        ) from None
+        raise BeadSightError(MISSING) from None
 
     def struct(typename: str, **fields: Any) -> type:
         name = typename.rsplit("::", 1)[1]
@@ -133,20 +180,23 @@ def _fast_byte_sequences(image_type: type) -> None:
         logger.warning("ros2: fast image serialisation unavailable (%s); publishing is slower", e)
 
 
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
 def _build(cls: type, value: Any) -> Any:
     """An IDL struct instance from a ros_messages dict (nested dicts and lists of dicts)."""
-    fields = getattr(cls, "__dataclass_fields__", None)
-    if fields is None or not isinstance(value, dict):
+    if not isinstance(value, dict):
         return value
-    hints = typing.get_type_hints(cls)
+    hints = _hints(cls)
     out = {}
-    for name in fields:
-        sub = hints.get(name)
+    for name, sub in hints.items():
         item = value[name]
         if isinstance(item, list) and item and isinstance(item[0], dict):
             out[name] = [_build(typing.get_args(sub)[0], x) for x in item]
         else:
-            out[name] = _build(sub, item) if isinstance(item, dict) else item
+            out[name] = _build(sub, item)
     return cls(**out)
 
 
@@ -166,8 +216,9 @@ class Ros2Publisher(BackgroundPublisher):
     """Publishes each live update as ROS 2 messages (a ``LiveListener``).
 
     namespace: ROS 2 namespace of the topics (``/beadsight``).
-    domain_id: the ROS_DOMAIN_ID to publish in (0..232).
+    domain_id: the ROS_DOMAIN_ID to publish in (0..232; see :func:`domain_from_environment`).
     camera: also publish the model-input frame (``<namespace>/camera``, rgb8).
+    Cyclone DDS reads its network settings from ``$CYCLONEDDS_URI`` as usual.
     """
 
     name = "ros2"
@@ -179,43 +230,40 @@ class Ros2Publisher(BackgroundPublisher):
         camera: bool = False,
         queue_size: int = DEFAULT_QUEUE_SIZE,
     ):
-        if not 0 <= domain_id <= 232:
-            raise BeadSightError(f"ROS domain id {domain_id}: expected 0..232 (ROS_DOMAIN_ID)")
         self.namespace = msg.check_namespace(namespace)
-        self.domain_id = domain_id
+        self.domain_id = check_domain(domain_id)
         self.camera = camera
-        self._types = _types()
+        types_ = _types()
         from cyclonedds.domain import DomainParticipant
-
-        self._participant = DomainParticipant(domain_id)
-        self._writers: dict[str, tuple[Any, type]] = {}
-        for name, ros_type in (
-            (msg.PRESSURE, "sensor_msgs/msg/Image"),
-            (msg.FORCE, "geometry_msgs/msg/WrenchStamped"),
-            (msg.COP, "geometry_msgs/msg/PointStamped"),
-            (msg.CONTACT_AREA, "std_msgs/msg/Float32"),
-            (msg.HEALTH, "diagnostic_msgs/msg/DiagnosticArray"),
-            (msg.REFERENCE_FORCE, "geometry_msgs/msg/WrenchStamped"),
-            *([(msg.CAMERA, "sensor_msgs/msg/Image")] if camera else []),
-        ):
-            self._writers[name] = self._writer(name, self._types[ros_type])
-        super().__init__(queue_size)
-
-    def _writer(self, name: str, cls: type) -> tuple[Any, type]:
         from cyclonedds.pub import DataWriter
         from cyclonedds.topic import Topic
 
-        dds_topic = DDS_TOPIC_PREFIX + msg.topic(self.namespace, name)
-        topic = Topic(self._participant, dds_topic, cls, qos=default_qos())
-        return DataWriter(self._participant, topic, qos=default_qos()), cls
+        self._participant = DomainParticipant(domain_id)
+        self._entities: list[Any] = []  # topics and writers, deleted in close()
+        self._writers: dict[str, tuple[Any, type]] = {}
+        qos = default_qos()
+        for name, ros_type in TOPIC_TYPES.items():
+            if name == msg.CAMERA and not camera:
+                continue
+            cls = types_[ros_type]
+            topic = Topic(self._participant, DDS_TOPIC_PREFIX + self._topic(name), cls, qos=qos)
+            writer = DataWriter(self._participant, topic, qos=qos)
+            self._entities += [writer, topic]
+            self._writers[name] = (writer, cls)
+        super().__init__(queue_size)
+
+    def _topic(self, name: str) -> str:
+        return msg.topic(self.namespace, name)
 
     def topics(self) -> dict[str, str]:
         """ROS 2 topic name -> ROS 2 type of everything this publisher writes."""
+        return {self._topic(name): TOPIC_TYPES[name] for name in self._writers}
+
+    def subscribers(self) -> dict[str, int]:
+        """ROS 2 topic name -> how many subscriptions (any node, any vendor) match it now."""
         return {
-            msg.topic(self.namespace, name): cls.__idl_typename__.replace("::msg::dds_::", "/msg/")[
-                :-1
-            ]
-            for name, (_w, cls) in self._writers.items()
+            self._topic(name): len(writer.get_matched_subscriptions())
+            for name, (writer, _cls) in self._writers.items()
         }
 
     def _write(self, name: str, message: dict[str, Any]) -> None:
@@ -236,13 +284,15 @@ class Ros2Publisher(BackgroundPublisher):
         if self.camera:
             self._write(msg.CAMERA, msg.camera_message(update.frame_rgb, t))
 
-    def publish_status(self, status: Any) -> None:
-        level = STATUS_LEVELS.get(status.state, msg.DIAGNOSTIC_WARN)
-        values = {"state": status.state, "since_s": f"{status.since_s:.3f}"}
-        self._write(msg.HEALTH, msg.diagnostics_message(level, status.message, values, time.time()))
+    def publish_health(self, report: dict[str, Any]) -> None:
+        self._write(msg.HEALTH, msg.diagnostics_message(report))
 
     def close(self) -> None:
+        """Delete the writers, topics and participant now (Cyclone would on collection);
+        deleting a writer first lets reliable readers acknowledge what it wrote."""
         self._writers.clear()
+        entities, self._entities = self._entities, []
         participant, self._participant = self._participant, None
-        if participant is not None:
-            del participant  # Cyclone deletes the participant and its writers when collected
+        for entity in [*entities, participant]:
+            if entity is not None:
+                entity.__del__()  # dds_delete; idempotent (Cyclone tracks deleted entities)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import re
+from fractions import Fraction
 from typing import Any
 
 import numpy as np
@@ -86,10 +87,24 @@ def topic(namespace: str, name: str) -> str:
     return f"{check_namespace(namespace)}/{name}"
 
 
+def stamp(timestamp_s: float) -> tuple[int, int]:
+    """Unix time in s -> (sec, nanosec): the float's exact value rounded to the nearest ns
+    (``round(t * 1e9)`` would be up to 128 ns off: a float64 holds today's unix time in ns
+    only to 256 ns)."""
+    sec, nanosec = divmod(round(Fraction(timestamp_s) * NS_PER_S), NS_PER_S)
+    return int(sec), int(nanosec)
+
+
+def unix_ns(timestamp_s: float) -> int:
+    """Unix time in s -> integer ns (log times of MCAP and Foxglove), see :func:`stamp`."""
+    sec, nanosec = stamp(timestamp_s)
+    return sec * NS_PER_S + nanosec
+
+
 def header(timestamp_s: float) -> dict[str, Any]:
     """``std_msgs/msg/Header`` stamped ``timestamp_s`` (unix time, s)."""
-    ns = round(timestamp_s * NS_PER_S)
-    return {"stamp": {"sec": ns // NS_PER_S, "nanosec": ns % NS_PER_S}, "frame_id": FRAME_ID}
+    sec, nanosec = stamp(timestamp_s)
+    return {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": FRAME_ID}
 
 
 def image_message(pressure_kpa: np.ndarray, timestamp_s: float) -> dict[str, Any]:

@@ -1,5 +1,6 @@
 """Running a :class:`~beadsight.live.sensor.LiveSensor` from the command line: the viewer,
-the stream, a recording, periodic reports, until the end, a duration or Ctrl-C."""
+the stream, ROS 2 topics, the Foxglove server, a recording, periodic reports, until the
+end, a duration or Ctrl-C."""
 
 from __future__ import annotations
 
@@ -40,6 +41,10 @@ def run_live(
     viewer_options: dict[str, Any] | None = None,
     stream_port: int | None = None,
     stream_options: dict[str, Any] | None = None,
+    ros2: bool = False,
+    ros2_options: dict[str, Any] | None = None,
+    foxglove_port: int | None = None,
+    foxglove_options: dict[str, Any] | None = None,
     output: str | Path | None = None,
     overwrite: bool = False,
     duration_s: float | None = None,
@@ -56,9 +61,15 @@ def run_live(
 
     viewer_options: keyword arguments of :class:`~beadsight.live.viewer.server.ViewerServer`
     (max_fps, max_kpa, history_s, record_dir). stream_options: keyword arguments of
-    :class:`~beadsight.live.stream.StreamServer` (max_age_s).
+    :class:`~beadsight.live.stream.StreamServer` (max_age_s). ros2: publish ROS 2 topics
+    with :class:`~beadsight.live.ros2.Ros2Publisher` (``ros2_options``: namespace,
+    domain_id, camera). foxglove_port: serve Foxglove on ``host:foxglove_port`` with
+    :class:`~beadsight.live.foxglove.FoxgloveServer` (``foxglove_options``: max_kpa,
+    namespace). Both publish from their own threads (sensing never waits for them); a
+    missing optional package is refused before the model loads.
     """
-    wake, servers, failed = threading.Event(), [], threading.Event()
+    wake, servers, publishers, failed = threading.Event(), [], [], threading.Event()
+    kinds = _publisher_options(ros2, ros2_options, foxglove_port, foxglove_options)
 
     def recording_failed(error: BaseException) -> None:
         failed.set()
@@ -78,6 +89,9 @@ def run_live(
             )
             sensor.add_listener(servers[-1])
             echo(f"stream: tcp://{servers[-1].host}:{servers[-1].port} (see docs/live.md)")
+        for kind, options in kinds:
+            publishers.append(_start_publisher(kind, options, sensor, host, echo))
+            sensor.add_listener(publishers[-1])
         if viewer:
             from beadsight.live.viewer.server import ViewerServer
 
@@ -88,7 +102,7 @@ def run_live(
     except KeyboardInterrupt:
         echo("interrupted: stopping")
     finally:
-        _finish(sensor, servers, echo)
+        _finish(sensor, servers, publishers, echo)
     stats = sensor.stats()
     echo(f"final: {stats.summary()}")
     if sensor.error is not None:
@@ -96,9 +110,47 @@ def run_live(
     return stats
 
 
-def _finish(sensor: LiveSensor, servers: list[Any], echo: Callable[[str], None]) -> None:
-    """Close the servers, finish the recording (raising its error), stop the sensor; safe to
-    call twice."""
+def _publisher_options(
+    ros2: bool,
+    ros2_options: dict[str, Any] | None,
+    foxglove_port: int | None,
+    foxglove_options: dict[str, Any] | None,
+) -> list[tuple[str, dict[str, Any]]]:
+    """The publishers asked for, as (kind, keyword arguments), checked now (packages
+    installed, valid settings) so that a mistake is refused before the model loads."""
+    kinds = []
+    if ros2:
+        from beadsight.live.ros2 import check_options
+
+        kinds.append(("ros2", check_options(**(ros2_options or {}))))
+    if foxglove_port is not None:
+        from beadsight.live.foxglove import check_options
+
+        kinds.append(("foxglove", check_options(port=foxglove_port, **(foxglove_options or {}))))
+    return kinds
+
+
+def _start_publisher(
+    kind: str, options: dict[str, Any], sensor: LiveSensor, host: str, echo: Callable
+) -> Any:
+    if kind == "ros2":
+        from beadsight.live.ros2 import Ros2Publisher
+
+        publisher = Ros2Publisher(**options)
+        echo(f"ros2: domain {publisher.domain_id}: {', '.join(publisher.topics())}")
+        return publisher
+    from beadsight.live.foxglove import FoxgloveServer
+
+    server = FoxgloveServer(sensor.geometry, host, **options)
+    echo(f"foxglove: {server.url} (layout: docs/foxglove-layout.json)")
+    return server
+
+
+def _finish(
+    sensor: LiveSensor, servers: list[Any], publishers: list[Any], echo: Callable[[str], None]
+) -> None:
+    """Close the servers, finish the recording (raising its error), stop the sensor, then
+    let the publishers send what is left; safe to call twice."""
     try:
         while servers:
             servers.pop().close()
@@ -106,7 +158,14 @@ def _finish(sensor: LiveSensor, servers: list[Any], echo: Callable[[str], None])
         if recorded is not None:
             echo(f"wrote {recorded}")
     finally:
-        sensor.stop()
+        sensor.stop()  # the sensing thread's end finishes the publishers' queues
+        while publishers:
+            publisher = publishers.pop()
+            publisher.finish()  # also when sensing never started
+            echo(
+                f"{publisher.name}: published {publisher.published} readings, "
+                f"dropped {publisher.dropped}"
+            )
 
 
 def _wait(sensor, wake, viewer, duration_s, report_every_s, echo, failed) -> None:

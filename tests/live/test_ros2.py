@@ -1,0 +1,376 @@
+"""ROS 2 over DDS (``beadsight live --ros2``), received by an independent subscriber in another
+process (tests/live/ros2_peer.py: its own IDL types, ROS 2's QoS profiles) and decoded by
+rosbags (an independent ROS 2 CDR decoder).
+
+DDS stays on the loopback interface: every test runs in its own random ROS domain with a
+Cyclone config (``CYCLONEDDS_URI``) that selects 127.0.0.1, turns multicast off and finds
+peers by unicast on 127.0.0.1; each participant's Cyclone trace shows what it selected.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import random
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from browser_helpers import Beadsight
+from isolated import run_isolated
+from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+    BACKEND,
+    ScriptedSource,
+    no_thread_leaks,
+    press_frames,
+    tiny_model,
+    wait_until,
+)
+
+from beadsight.cli import main
+from beadsight.errors import BeadSightError
+from beadsight.live import ros_messages as msg
+from beadsight.live.listeners import LiveUpdate
+from beadsight.live.sensor import LiveSensor
+
+pytest.importorskip("cyclonedds", reason="the 'ros' extra is not installed")
+PEER = Path(__file__).with_name("ros2_peer.py")
+LOOPBACK_CONFIG = """<?xml version="1.0" encoding="UTF-8"?>
+<CycloneDDS xmlns="https://cdds.io/config">
+  <Domain Id="any">
+    <General>
+      <Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
+      <AllowMulticast>false</AllowMulticast>
+    </General>
+    <Discovery>
+      <ParticipantIndex>auto</ParticipantIndex>
+      <Peers><Peer address="127.0.0.1"/></Peers>
+    </Discovery>
+    <Tracing>
+      <Verbosity>config</Verbosity>
+      <OutputFile>TRACE_DIR/dds-${CYCLONEDDS_PID}.log</OutputFile>
+    </Tracing>
+  </Domain>
+</CycloneDDS>
+"""
+_DOMAINS = itertools.count(random.randrange(1, 200))  # a fresh domain per test
+STAMP_TOLERANCE_S = 1e-6  # header stamps are integer ns; float64 unix s resolve ~0.24 us
+
+
+@pytest.fixture
+def dds(tmp_path, monkeypatch):
+    """(domain id, trace folder): loopback-only Cyclone for this process and its children.
+    After the test, every participant's trace must show it selected 127.0.0.1 alone."""
+    traces = tmp_path / "dds"
+    traces.mkdir()
+    config = tmp_path / "cyclonedds.xml"
+    config.write_text(LOOPBACK_CONFIG.replace("TRACE_DIR", str(traces)))
+    monkeypatch.setenv("CYCLONEDDS_URI", config.as_uri())
+    monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
+    yield next(_DOMAINS) % 200 + 1, traces
+    logs = list(traces.glob("dds-*.log"))
+    assert logs, "no Cyclone trace: the loopback config was not used"
+    for log in logs:
+        text = log.read_text()
+        assert "selected interfaces: lo " in text, f"{log.name} did not select loopback alone"
+        assert "AllowMulticast/#text: false" in text
+
+
+class Peer:
+    """tests/live/ros2_peer.py in its own process: subscribed once it prints ``ready``."""
+
+    def __init__(self, domain: int, namespace: str = msg.DEFAULT_NAMESPACE, *extra: str):
+        self.proc = subprocess.Popen(
+            [sys.executable, str(PEER), str(domain), namespace, "60", *extra],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        first = self.proc.stdout.readline()
+        assert json.loads(first or "{}").get("ready"), self.proc.stderr.read()
+
+    def messages(self, timeout_s: float = 60) -> dict[str, list[dict]]:
+        """By topic, once the peer has seen the sensor end (and exited)."""
+        out, err = self.proc.communicate(timeout=timeout_s)
+        assert self.proc.returncode == 0, err
+        by_topic: dict[str, list[dict]] = {}
+        for line in out.splitlines():
+            m = json.loads(line)
+            by_topic.setdefault(m.pop("topic"), []).append(m)
+        return by_topic
+
+
+def _row(times: np.ndarray, t: float) -> int:
+    i = int(np.argmin(np.abs(times - t)))
+    assert abs(times[i] - t) < STAMP_TOLERANCE_S, f"stamp {t} is no reading's capture time"
+    return i
+
+
+def _sha(array: np.ndarray, dtype: str) -> str:
+    return hashlib.sha256(np.ascontiguousarray(array, dtype=dtype).tobytes()).hexdigest()
+
+
+@pytest.mark.slow
+def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path):
+    """`beadsight live --source sim --ros2`: every topic arrives at a subscriber in another
+    process with values, units, frames and stamps of the readings the run recorded."""
+    domain, _ = dds
+    peer = Peer(domain)
+    out = tmp_path / "readings.h5"
+    run = Beadsight(
+        *("live", "--source", "sim", "--no-viewer", "--no-stream", "--frames", "130"),
+        *("--ros2", "--ros-domain", str(domain), "--output", str(out), "--backend", "torch"),
+    )
+    run.wait_line(rf"ros2: domain {domain}: /beadsight/pressure, /beadsight/force", 60)
+    assert run.proc.wait(90) == 0, run.rest()
+    got = peer.messages()
+    with h5py.File(out) as f:
+        t, force, cop = f["timestamp_s"][:], f["force_n"][:], f["cop_mm"][:]
+        kpa, area, reference = (
+            f["pressure_kpa"][:],
+            f["contact_area_mm2"][:],
+            f["reference_force_n"][:],
+        )
+    # in order, each reading once; keep-last QoS drops samples when the peer falls behind
+    # (two shared cores), and the first ones may go before the peer is matched
+    assert len(got["force"]) >= 0.8 * len(t)
+    rows = [_row(t, m["t"]) for m in got["force"]]
+    assert rows == sorted(set(rows)), f"missing {sorted(set(range(len(t))) - set(rows))}"
+    for m, i in zip(got["force"], rows, strict=True):
+        assert m["frame"] == msg.FRAME_ID
+        assert m["force"] == pytest.approx([0, 0, force[i]], rel=1e-6, abs=1e-12)
+        assert m["torque"] == [0, 0, 0]
+    areas = [m["area_m2"] for m in got["contact_area"]]  # unstamped: values of the readings
+    assert len(areas) >= 0.8 * len(t)
+    for a in areas:  # float32 m^2 on the wire
+        assert np.min(np.abs(area * 1e-6 - a)) <= 1e-6 * a + 1e-15, f"{a} m^2 is no reading's"
+    assert max(areas) > 0
+    for m in got["reference_force"]:
+        assert m["force"][2] == pytest.approx(reference[_row(t, m["t"])])
+    # the pressure image: 32FC1 little-endian kPa, bit for bit the recorded map
+    assert len(got["pressure"]) >= 0.8 * len(t)
+    for m in got["pressure"]:
+        i = _row(t, m["t"])
+        h, w = kpa.shape[1:]
+        assert (m["enc"], m["h"], m["w"], m["step"], m["big"]) == ("32FC1", h, w, 4 * w, 0)
+        assert m["frame"] == msg.FRAME_ID and m["len"] == h * w * 4
+        assert m["sha"] == _sha(kpa[i], "<f4")
+    # the centre of pressure in metres, only for readings that have one
+    pressed = [i for i in rows if np.all(np.isfinite(cop[i]))]
+    assert len(pressed) >= 10, "the simulated session should press within 130 readings"
+    by_row = {_row(t, m["t"]): m for m in got["cop"]}
+    assert set(by_row) <= set(np.flatnonzero(np.isfinite(cop[:, 0])))
+    assert len(by_row) >= 0.8 * len(pressed)
+    for i, m in by_row.items():
+        assert m["frame"] == msg.FRAME_ID
+        assert m["point"] == pytest.approx([cop[i, 0] * 1e-3, cop[i, 1] * 1e-3, 0.0], rel=1e-6)
+    # the sensor's state on the health topic, ending with "ended" (level STALE)
+    states = [m["status"][0]["values"]["state"] for m in got["health"]]
+    assert "ok" in states and states[-1] == "ended"
+    last = got["health"][-1]["status"][0]
+    assert (last["name"], last["level"], last["hardware_id"]) == (
+        msg.SENSOR_STATUS,
+        msg.DIAGNOSTIC_STALE,
+        msg.FRAME_ID,
+    )
+    assert "camera" not in got
+    assert f"ros2: published {len(t)} readings, dropped 0" in run.rest()
+
+
+# --- in process: health, camera, a namespace; the wire format ------------------------------
+@dataclass(frozen=True)
+class Health:
+    """The health a sensor that tracks drift attaches to its updates (issue 15, item 3)."""
+
+    state: str
+    figures: dict
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class UpdateWithHealth(LiveUpdate):
+    health: Health | None = None
+
+
+class HealthTagger:
+    """A listener in front of a publisher that gives each update a health state: ok, then
+    drifting, then recalibrate (a third of the updates each)."""
+
+    def __init__(self, target, total: int):
+        self.target, self.total, self.count = target, total, 0
+
+    def push(self, update: LiveUpdate) -> None:
+        state = ("ok", "drifting", "recalibrate")[min(3 * self.count // self.total, 2)]
+        figures = {"bead_shift_px": 0.5 * self.count, "force_offset_n": float("nan"), "n": 3}
+        health = Health(state, figures, f"{state}: see docs/live.md")
+        values = {f.name: getattr(update, f.name) for f in fields(LiveUpdate)}
+        self.target.push(UpdateWithHealth(**values, health=health))
+        self.count += 1
+
+    def status(self, status) -> None:
+        self.target.status(status)
+
+    def finish(self) -> None:
+        self.target.finish()
+
+
+class PacedSource(ScriptedSource):
+    """The scripted camera at its frame rate (so that nothing queues up anywhere)."""
+
+    def async_read(self, timeout_s=None, max_frames=None):
+        time.sleep(1 / self.fps)
+        return super().async_read(timeout_s, max_frames)
+
+
+def test_health_camera_and_namespace_reach_the_subscriber(dds):
+    from beadsight.live.ros2 import Ros2Publisher
+
+    domain, _ = dds
+    namespace = "/robot/left_finger"
+    peer = Peer(domain, namespace, "--camera")
+    frames, _ = press_frames(presses=2, per_press=30)
+    sensor = LiveSensor(tiny_model(), PacedSource(frames, fps=60.0), **BACKEND)
+    updates = []
+    sensor.on_update(updates.append)
+    sensor.open()
+    publisher = Ros2Publisher(namespace, domain, camera=True, queue_size=64)
+    assert publisher.topics()[f"{namespace}/camera"] == "sensor_msgs/msg/Image"
+    wait_until(lambda: all(n == 1 for n in publisher.subscribers().values()), 20, "matching")
+    sensor.add_listener(HealthTagger(publisher, total=len(frames) - sensor.model.span + 1))
+    sensor.start()
+    sensor.wait(30)
+    sensor.stop()
+    publisher.finish()
+    got = peer.messages()
+    assert (publisher.published, publisher.dropped, publisher.errors) == (len(updates), 0, 0)
+    # the camera: rgb8, the model-input frames bit for bit
+    by_time = {u.reading.timestamp_s: u for u in updates}
+    assert len(got["camera"]) == len(updates)
+    for m in got["camera"]:
+        frame = by_time[min(by_time, key=lambda t: abs(t - m["t"]))].frame_rgb
+        h, w, _ = frame.shape
+        assert (m["enc"], m["h"], m["w"], m["step"]) == ("rgb8", h, w, 3 * w)
+        assert m["sha"] == _sha(frame, np.uint8)
+    # health: every change at once, with its level and figures (as text, NaN as "")
+    health = [m["status"] for m in got["health"] if len(m["status"]) == 2]
+    seen = [(s[1]["values"]["state"], s[1]["level"]) for s in health]
+    assert [k for k, _ in itertools.groupby(seen)] == [
+        ("ok", 0),
+        ("drifting", 1),
+        ("recalibrate", 2),
+    ]
+    for status in health:
+        sensor_status, drift = status
+        assert sensor_status["name"] == msg.SENSOR_STATUS
+        assert drift["name"] == msg.HEALTH_STATUS and drift["hardware_id"] == msg.FRAME_ID
+        assert drift["message"] == f"{drift['values']['state']}: see docs/live.md"
+        assert float(drift["values"]["bead_shift_px"]) >= 0
+        assert drift["values"]["force_offset_n"] == "" and drift["values"]["n"] == "3"
+    assert got["health"][-1]["status"][0]["values"]["state"] == "ended"
+
+
+def test_messages_decode_with_rosbags(dds):
+    """The bytes our writers put on the wire (XCDR1, as ROS 2) decode with rosbags'
+    ROS 2 type store into the values of the reading."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from beadsight.live.ros2 import TOPIC_TYPES, Ros2Publisher, _build
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    domain, _ = dds
+    publisher = Ros2Publisher(domain_id=domain, camera=True)
+    try:
+        t = 1_700_000_000.125  # exact in binary
+        kpa = np.random.default_rng(0).uniform(0, 50, (64, 64)).astype(np.float32)
+        rgb = np.random.default_rng(1).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+        report = msg.health_report(None, Health("drifting", {"shift_px": 1.25}, "settle"), t)
+        messages = {
+            msg.PRESSURE: msg.image_message(kpa, t),
+            msg.CAMERA: msg.camera_message(rgb, t),
+            msg.FORCE: msg.wrench_message(3.5, t),
+            msg.COP: msg.point_message(np.array([1.5, -2.0]), t),
+            msg.CONTACT_AREA: msg.area_message(12.5),
+            msg.HEALTH: msg.diagnostics_message(report),
+        }
+        decoded = {}
+        for name, message in messages.items():
+            writer, cls = publisher._writers[name]
+            assert writer._use_version_2 is False  # XCDR1 (plain CDR), what ROS 2 speaks
+            raw = _build(cls, message).serialize(use_version_2=writer._use_version_2)
+            assert raw[:2] == b"\x00\x01"  # CDR little-endian encapsulation
+            decoded[name] = store.deserialize_cdr(raw, TOPIC_TYPES[name])
+    finally:
+        publisher.finish()
+    image = decoded[msg.PRESSURE]
+    assert (image.header.stamp.sec, image.header.stamp.nanosec) == (1_700_000_000, 125_000_000)
+    assert image.header.frame_id == "beadsight" and image.encoding == "32FC1"
+    assert (image.height, image.width, image.step, image.is_bigendian) == (64, 64, 256, 0)
+    assert np.array_equal(np.frombuffer(image.data.tobytes(), "<f4").reshape(64, 64), kpa)
+    camera = decoded[msg.CAMERA]
+    assert camera.encoding == "rgb8" and np.array_equal(camera.data.reshape(64, 64, 3), rgb)
+    assert decoded[msg.FORCE].wrench.force.z == 3.5
+    point = decoded[msg.COP].point
+    assert (point.x, point.y, point.z) == pytest.approx((1.5e-3, -2.0e-3, 0.0))
+    assert decoded[msg.CONTACT_AREA].data == pytest.approx(12.5e-6)
+    sensor_status, drift = decoded[msg.HEALTH].status
+    assert (sensor_status.name, drift.name, drift.level, drift.message) == (
+        msg.SENSOR_STATUS,
+        msg.HEALTH_STATUS,
+        msg.DIAGNOSTIC_WARN,
+        "settle",
+    )
+    assert {kv.key: kv.value for kv in drift.values} == {"state": "drifting", "shift_px": "1.25"}
+
+
+# --- the command line: options, defaults, errors -----------------------------------------
+def test_ros_domain_defaults_to_ros_domain_id(monkeypatch):
+    from beadsight.live.ros2 import domain_from_environment
+
+    assert domain_from_environment({}) == 0
+    assert domain_from_environment({"ROS_DOMAIN_ID": " 42 "}) == 42
+    for bad in ("abc", "233", "-1"):
+        with pytest.raises(BeadSightError, match="ROS_DOMAIN_ID"):
+            domain_from_environment({"ROS_DOMAIN_ID": bad})
+
+
+@pytest.mark.parametrize(
+    "args, env, error",
+    [
+        (["--ros-namespace", "beadsight"], {}, "ROS namespace 'beadsight': expected '/name'"),
+        (["--ros-namespace", "/bead-sight"], {}, "ROS namespace '/bead-sight'"),
+        (["--ros-domain", "500"], {}, "ROS domain id 500: expected 0..232"),
+        ([], {"ROS_DOMAIN_ID": "x"}, "ROS_DOMAIN_ID='x': expected an integer"),
+    ],
+)
+def test_bad_ros_options_are_one_line_errors_before_the_model_loads(
+    args, env, error, capsys, monkeypatch
+):
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    missing = Path("no-such-checkpoint.pt")  # never opened: the options are refused first
+    code = main(["live", "--checkpoint", str(missing), "--no-viewer", "--ros2", *args])
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and len(err.splitlines()) == 1
+    assert error in err and "no-such-checkpoint" not in err
+
+
+def test_missing_cyclonedds_names_the_extra():
+    done = run_isolated(
+        """
+        import sys
+        sys.modules["cyclonedds"] = None  # as if not installed
+        from beadsight.cli import main
+        sys.exit(main(["live", "--no-viewer", "--no-stream", "--ros2"]))
+        """
+    )
+    assert done.returncode == 1, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        "beadsight live: error: --ros2 needs Cyclone DDS (the 'cyclonedds' package): "
+        "pip install 'beadsight[ros]'"
+    ]
