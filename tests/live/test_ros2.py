@@ -15,8 +15,6 @@ import json
 import random
 import subprocess
 import sys
-import time
-from dataclasses import dataclass, fields
 from pathlib import Path
 
 import h5py
@@ -26,17 +24,16 @@ from browser_helpers import Beadsight
 from isolated import run_isolated
 from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
     BACKEND,
-    ScriptedSource,
     no_thread_leaks,
     press_frames,
     tiny_model,
     wait_until,
 )
+from publish_helpers import Health, HealthTagger, PacedSource
 
 from beadsight.cli import main
 from beadsight.errors import BeadSightError
 from beadsight.live import ros_messages as msg
-from beadsight.live.listeners import LiveUpdate
 from beadsight.live.sensor import LiveSensor
 
 pytest.importorskip("cyclonedds", reason="the 'ros' extra is not installed")
@@ -184,50 +181,6 @@ def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path):
 
 
 # --- in process: health, camera, a namespace; the wire format ------------------------------
-@dataclass(frozen=True)
-class Health:
-    """The health a sensor that tracks drift attaches to its updates (issue 15, item 3)."""
-
-    state: str
-    figures: dict
-    message: str = ""
-
-
-@dataclass(frozen=True)
-class UpdateWithHealth(LiveUpdate):
-    health: Health | None = None
-
-
-class HealthTagger:
-    """A listener in front of a publisher that gives each update a health state: ok, then
-    drifting, then recalibrate (a third of the updates each)."""
-
-    def __init__(self, target, total: int):
-        self.target, self.total, self.count = target, total, 0
-
-    def push(self, update: LiveUpdate) -> None:
-        state = ("ok", "drifting", "recalibrate")[min(3 * self.count // self.total, 2)]
-        figures = {"bead_shift_px": 0.5 * self.count, "force_offset_n": float("nan"), "n": 3}
-        health = Health(state, figures, f"{state}: see docs/live.md")
-        values = {f.name: getattr(update, f.name) for f in fields(LiveUpdate)}
-        self.target.push(UpdateWithHealth(**values, health=health))
-        self.count += 1
-
-    def status(self, status) -> None:
-        self.target.status(status)
-
-    def finish(self) -> None:
-        self.target.finish()
-
-
-class PacedSource(ScriptedSource):
-    """The scripted camera at its frame rate (so that nothing queues up anywhere)."""
-
-    def async_read(self, timeout_s=None, max_frames=None):
-        time.sleep(1 / self.fps)
-        return super().async_read(timeout_s, max_frames)
-
-
 def test_health_camera_and_namespace_reach_the_subscriber(dds):
     from beadsight.live.ros2 import Ros2Publisher
 

@@ -13,7 +13,8 @@ channel                            schema                content
                                                          viewer's scale), ``rgb8``
 ``/beadsight/reading``             JSON                   force_n, cop_m {x, y}, contact_area_m2,
                                                          has_contact, reference_force_n
-``/beadsight/health``              JSON                   the sensor's state, message and figures
+``/beadsight/health``              JSON                   the health state (ok, drifting, recalibrate),
+                                                         its message and figures, the sensor's state
 =================================  ====================  ===========================================
 
 Open Foxglove, connect to ``ws://HOST:PORT`` and import ``docs/foxglove-layout.json``.
@@ -23,7 +24,8 @@ Logging runs on its own thread (a slow client never slows sensing).
 from __future__ import annotations
 
 import inspect
-import math
+import json
+import threading
 from typing import Any
 
 import numpy as np
@@ -48,13 +50,16 @@ READING_SCHEMA = {
         },
         "force_n": {"type": "number", "description": "total normal force, N"},
         "cop_m": {
-            "type": "object",
+            "type": ["object", "null"],
             "description": "centre of pressure in the beadsight frame, m (null without pressure)",
             "properties": {"x": {"type": "number"}, "y": {"type": "number"}},
         },
-        "contact_area_m2": {"type": "number"},
+        "contact_area_m2": {"type": "number", "description": "contact area, m^2"},
         "has_contact": {"type": "boolean"},
-        "reference_force_n": {"type": "number", "description": "true force (simulator), or null"},
+        "reference_force_n": {
+            "type": ["number", "null"],
+            "description": "true force when the source knows it (the simulator), N",
+        },
     },
 }
 HEALTH_SCHEMA = {
@@ -73,6 +78,7 @@ HEALTH_SCHEMA = {
     },
 }
 HEALTH_STATUS_ID = "beadsight-health"  # the Foxglove app's problem entry for poor health
+READING_SCHEMA_NAME, HEALTH_SCHEMA_NAME = "beadsight.Reading", "beadsight.Health"
 
 
 def _require_foxglove() -> Any:
@@ -114,8 +120,24 @@ def _timestamp(t_s: float) -> Any:
     return Timestamp(*msg.stamp(t_s))
 
 
-def _finite(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
+def _json_schema(fox: Any, name: str, schema: dict) -> Any:
+    return fox.Schema(name=name, encoding="jsonschema", data=json.dumps(schema).encode())
+
+
+class _Subscriptions:
+    """A ``foxglove.ServerListener`` that counts the clients subscribed to each topic."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self.counts: dict[str, int] = {}
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        with self._lock:
+            self.counts[channel.topic] = self.counts.get(channel.topic, 0) + 1
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        with self._lock:
+            self.counts[channel.topic] = self.counts.get(channel.topic, 1) - 1
 
 
 class FoxgloveServer(BackgroundPublisher):
@@ -148,19 +170,35 @@ class FoxgloveServer(BackgroundPublisher):
             name="pressure_kpa", offset=0, type=PackedElementFieldNumericType.Float32
         )
         self._context = fox.Context()
+        self._subscriptions = _Subscriptions()
         try:
             self._server = fox.start_server(
-                name="beadsight", host=host, port=port, context=self._context
+                name="beadsight",
+                host=host,
+                port=port,
+                context=self._context,
+                server_listener=self._subscriptions,
             )
         except Exception as e:
             raise BeadSightError(f"Foxglove server on {host}:{port}: {e}") from e
         self.host, self.port = host, self._server.port
+        self._status_shown = False  # a poor-health status is up in the clients
         ctx, topic = self._context, lambda name: msg.topic(namespace, name)
         self._camera = RawImageChannel(topic(msg.CAMERA), context=ctx)
         self._pressure = GridChannel(topic(msg.PRESSURE), context=ctx)
         self._pressure_image = RawImageChannel(topic(PRESSURE_IMAGE), context=ctx)
-        self._reading = fox.Channel(topic(READING), schema=READING_SCHEMA, context=ctx)
-        self._health_channel = fox.Channel(topic(msg.HEALTH), schema=HEALTH_SCHEMA, context=ctx)
+        self._reading = fox.Channel(
+            topic(READING),
+            schema=_json_schema(fox, READING_SCHEMA_NAME, READING_SCHEMA),
+            message_encoding="json",
+            context=ctx,
+        )
+        self._health_channel = fox.Channel(
+            topic(msg.HEALTH),
+            schema=_json_schema(fox, HEALTH_SCHEMA_NAME, HEALTH_SCHEMA),
+            message_encoding="json",
+            context=ctx,
+        )
         super().__init__(queue_size)
 
     @property
@@ -178,6 +216,11 @@ class FoxgloveServer(BackgroundPublisher):
                 self._health_channel,
             )
         ]
+
+    def subscribers(self) -> dict[str, int]:
+        """Topic -> how many clients are subscribed to it now."""
+        with self._subscriptions._lock:
+            return {t: self._subscriptions.counts.get(t, 0) for t in self.topics()}
 
     def _raw_image(self, rgb: np.ndarray, t_s: float) -> Any:
         from foxglove.messages import RawImage
@@ -238,7 +281,7 @@ class FoxgloveServer(BackgroundPublisher):
             ),
             "contact_area_m2": float(r.contact_area_mm2) * msg.M2_PER_MM2,
             "has_contact": bool(r.has_contact),
-            "reference_force_n": _finite(update.reference_force_n),
+            "reference_force_n": msg.finite_or_none(update.reference_force_n),
         }
         self._reading.log(reading, log_time=t_ns)
 
@@ -254,8 +297,9 @@ class FoxgloveServer(BackgroundPublisher):
         if level is not None:
             text = f"beadsight health: {report['state']}. {report['message']}".strip()
             self._server.publish_status(text, level, HEALTH_STATUS_ID)
-        else:
+        elif self._status_shown:
             self._server.remove_status([HEALTH_STATUS_ID])
+        self._status_shown = level is not None
 
     def close(self) -> None:
         self._server.stop()

@@ -1,0 +1,57 @@
+"""Shared pieces of the ROS 2 and Foxglove tests: updates that carry a health state (as a
+sensor that tracks drift gives them, issue 15 item 3) and a camera at its frame rate."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, fields
+
+from live_helpers import ScriptedSource
+
+from beadsight.live.listeners import LiveUpdate
+
+HEALTH_STATES = ("ok", "drifting", "recalibrate")
+
+
+@dataclass(frozen=True)
+class Health:
+    """A health state with its figures (the interface of ``LiveUpdate.health``)."""
+
+    state: str
+    figures: dict
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class UpdateWithHealth(LiveUpdate):
+    health: Health | None = None
+
+
+class HealthTagger:
+    """A listener in front of a publisher that gives each update a health state: ok, then
+    drifting, then recalibrate (a third of ``total`` updates each), with figures."""
+
+    def __init__(self, target, total: int):
+        self.target, self.total, self.count = target, total, 0
+
+    def push(self, update: LiveUpdate) -> None:
+        state = HEALTH_STATES[min(3 * self.count // self.total, 2)]
+        figures = {"bead_shift_px": 0.5 * self.count, "force_offset_n": float("nan"), "n": 3}
+        health = Health(state, figures, f"{state}: see docs/live.md")
+        values = {f.name: getattr(update, f.name) for f in fields(LiveUpdate)}
+        self.target.push(UpdateWithHealth(**values, health=health))
+        self.count += 1
+
+    def status(self, status) -> None:
+        self.target.status(status)
+
+    def finish(self) -> None:
+        self.target.finish()
+
+
+class PacedSource(ScriptedSource):
+    """The scripted camera at its frame rate (so that nothing queues up anywhere)."""
+
+    def async_read(self, timeout_s=None, max_frames=None):
+        time.sleep(1 / self.fps)
+        return super().async_read(timeout_s, max_frames)
