@@ -33,7 +33,7 @@ class BackgroundPublisher:
     :meth:`publish_health` (a :func:`~beadsight.live.ros_messages.health_report`) and
     :meth:`close` (release resources, called on the worker thread after the last
     publish). ``published`` and ``dropped`` count updates; ``errors`` counts publish
-    calls that raised (each is logged). An update's health is its ``health`` attribute
+    calls that raised (each is logged); ``busy_s`` is the time spent in them. An update's health is its ``health`` attribute
     (``.state``, ``.figures``), where the sensor tracks it.
     """
 
@@ -53,6 +53,7 @@ class BackgroundPublisher:
         self.published = 0
         self.dropped = 0
         self.errors = 0
+        self.busy_s = 0.0  # time spent in publish(), s
         self._thread = threading.Thread(
             target=self._work, name=f"beadsight-{self.name}", daemon=True
         )
@@ -129,8 +130,10 @@ class BackgroundPublisher:
                 statuses, update, done = self._next()
                 if statuses:
                     self._status = statuses[-1]
-                if update is not None and self._guarded(self.publish, update):
-                    self.published += 1
+                if update is not None:
+                    start = time.perf_counter()
+                    self.published += self._guarded(self.publish, update)
+                    self.busy_s += time.perf_counter() - start
                 self._report_health(bool(statuses), update)
                 if done:
                     return

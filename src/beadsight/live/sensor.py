@@ -407,6 +407,8 @@ class LiveSensor:
             self._set_status("error", str(e))
             logger.exception("live: sensing stopped by an error")
         finally:
+            if self._stop.is_set() and self._status.state not in ("ended", "error"):
+                self._set_status("stopped", "stopped")  # listeners hear it before finish()
             self._done.set()
             for listener in self._listeners:
                 try:
