@@ -13,7 +13,7 @@ Each row runs a LiveSensor with the shipped sim model on the simulator paced at 
 an independent subscriber in another process (tests/live/ros2_peer.py: best effort on the
 images, reliable on the rest); Foxglove rows attach a WebSocket client in another process
 subscribed to every channel. DDS stays on 127.0.0.1 (a loopback Cyclone config) unless
-CYCLONEDDS_URI is set. Prints the CPU model and its SIMD flags beside the figures.
+CYCLONEDDS_URI is set. Prints the CPU model, its cores and flags beside the figures.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from beadsight.inference.machine import cpu_name
+from beadsight.inference.machine import cpu_summary
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.settings import LiveSettings
 
@@ -43,7 +43,6 @@ ROWS = {
     "both": (True, True),
 }
 DOMAIN = 97  # ROS domain of the benchmark
-SIMD = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile")
 LOOPBACK = """<CycloneDDS xmlns="https://cdds.io/config"><Domain Id="any">
 <General><Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
 <AllowMulticast>false</AllowMulticast></General>
@@ -67,16 +66,6 @@ with connect(url, subprotocols=["foxglove.sdk.v1"]) as ws:
             break
 print(count, flush=True)
 """
-
-
-def cpu_flags() -> list[str]:
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return []
-    line = next((x for x in text.splitlines() if x.startswith("flags")), ":")
-    have = set(line.split(":", 1)[1].split())
-    return [f for f in SIMD if f in have]
 
 
 class Consumer:
@@ -190,14 +179,14 @@ def main() -> int:
             config.write_text(LOOPBACK)
             os.environ["CYCLONEDDS_URI"] = config.as_uri()
         results = [run(name, args) for name in args.rows]
-    cpu = f"{cpu_name()} ({os.cpu_count()} cores; {' '.join(cpu_flags()) or 'no SIMD flags'})"
+    cpu = cpu_summary()
     if args.json:
         print(json.dumps({"cpu": cpu, "rows": results}, indent=2))
         return 0
     print(
         f"live outputs, shipped sim model, simulator at {args.fps:g} fps, {args.seconds:g} s per row"
     )
-    print(f"cpu: {cpu}")
+    print(cpu)
     print(
         f"{'outputs':<9} {'backend':<16} {'Hz':>6} {'skipped':>7} {'lat p50':>8} {'lat p99':>8} "
         f"{'published':>10} {'dropped':>8} {'consumer msgs':>13} {'publish ms':>10}"

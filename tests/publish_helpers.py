@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, fields
 
+from isolated import run_isolated
 from live_helpers import ScriptedSource
 
 from beadsight.live.listeners import LiveUpdate
@@ -55,3 +56,18 @@ class PacedSource(ScriptedSource):
     def async_read(self, timeout_s=None, max_frames=None):
         time.sleep(1 / self.fps)
         return super().async_read(timeout_s, max_frames)
+
+
+def live_without(module: str, *args: str) -> list[str]:
+    """``beadsight live --no-viewer --no-stream ARGS`` in a fresh interpreter where
+    ``module`` is not installed; returns its stderr lines (it must exit 1)."""
+    done = run_isolated(
+        f"""
+        import sys
+        sys.modules[{module!r}] = None  # as if not installed
+        from beadsight.cli import main
+        sys.exit(main(["live", "--no-viewer", "--no-stream", *{list(args)!r}]))
+        """
+    )
+    assert done.returncode == 1, done.stderr
+    return done.stderr.strip().splitlines()

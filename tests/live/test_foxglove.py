@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from browser_helpers import Beadsight
-from isolated import run_isolated
 from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
     BACKEND,
     TINY,
@@ -26,7 +25,7 @@ from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture
     tiny_model,
     wait_until,
 )
-from publish_helpers import HEALTH_STATES, HealthTagger, PacedSource
+from publish_helpers import HEALTH_STATES, HealthTagger, PacedSource, live_without
 
 from beadsight.cli import main
 from beadsight.live import ros_messages as msg
@@ -269,16 +268,7 @@ def test_foxglove_errors_are_one_line(capsys):
 
 
 def test_missing_foxglove_sdk_names_the_extra():
-    done = run_isolated(
-        """
-        import sys
-        sys.modules["foxglove"] = None  # as if not installed
-        from beadsight.cli import main
-        sys.exit(main(["live", "--no-viewer", "--no-stream", "--foxglove"]))
-        """
-    )
-    assert done.returncode == 1, done.stderr
-    assert done.stderr.strip().splitlines() == [
+    assert live_without("foxglove", "--foxglove") == [
         "beadsight live: error: --foxglove needs the Foxglove SDK (the 'foxglove-sdk' "
         "package): pip install 'beadsight[ros]'"
     ]

@@ -21,7 +21,6 @@ import h5py
 import numpy as np
 import pytest
 from browser_helpers import Beadsight
-from isolated import run_isolated
 from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
     BACKEND,
     no_thread_leaks,
@@ -29,7 +28,7 @@ from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture
     tiny_model,
     wait_until,
 )
-from publish_helpers import Health, HealthTagger, PacedSource
+from publish_helpers import Health, HealthTagger, PacedSource, live_without
 
 from beadsight.cli import main
 from beadsight.errors import BeadSightError
@@ -314,16 +313,7 @@ def test_bad_ros_options_are_one_line_errors_before_the_model_loads(
 
 
 def test_missing_cyclonedds_names_the_extra():
-    done = run_isolated(
-        """
-        import sys
-        sys.modules["cyclonedds"] = None  # as if not installed
-        from beadsight.cli import main
-        sys.exit(main(["live", "--no-viewer", "--no-stream", "--ros2"]))
-        """
-    )
-    assert done.returncode == 1, done.stderr
-    assert done.stderr.strip().splitlines() == [
+    assert live_without("cyclonedds", "--ros2") == [
         "beadsight live: error: --ros2 needs Cyclone DDS (the 'cyclonedds' package): "
         "pip install 'beadsight[ros]'"
     ]
