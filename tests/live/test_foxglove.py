@@ -188,8 +188,10 @@ def test_health_reaches_the_client_and_the_app_status(tmp_path):
     sensor.open()
     server = FoxgloveServer(sensor.geometry, port=0, queue_size=64)
 
-    def ended(got) -> bool:
-        return any(m["sensor_state"] == "ended" for _, m in got.get(f"{NS}/health", []))
+    def ended(got) -> bool:  # statuses travel apart from messages: wait for both
+        reports = got.get(f"{NS}/health", [])
+        recalibrate = any(op.get("level") == 2 for op in client.ops)
+        return recalibrate and any(m["sensor_state"] == "ended" for _, m in reports)
 
     with foxglove_client(server.url) as client:
         client.subscribe_all()

@@ -5,7 +5,9 @@ stores the update (keeping the newest :attr:`queue_size`, counting the ones it d
 and returns. A worker thread hands updates to :meth:`publish`, which subclasses
 implement (ROS 2 over DDS, the Foxglove WebSocket server, ...), and the sensor's state
 and health to :meth:`publish_health`: at once when the sensor's state or the health
-state changes, else every :data:`HEALTH_PERIOD_S` while readings flow.
+state changes, else every :data:`HEALTH_PERIOD_S` while readings flow. A state change
+is published in order with the readings around it (state changes are never dropped), so
+"ended" comes after the last reading.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ logger = logging.getLogger(__name__)
 DEFAULT_QUEUE_SIZE = 4  # updates waiting for the worker before the oldest is dropped
 FINISH_TIMEOUT_S = 5.0  # finish() waits this long for the worker to drain
 HEALTH_PERIOD_S = 1.0  # the health topic repeats this often while readings flow (ROS: 1 Hz)
+UPDATE, STATUS = "update", "status"
 
 
 class BackgroundPublisher:
@@ -42,8 +45,9 @@ class BackgroundPublisher:
     def __init__(self, queue_size: int = DEFAULT_QUEUE_SIZE):
         if queue_size < 1:
             raise ValueError(f"queue_size must be >= 1, got {queue_size}")
-        self._updates: deque[Any] = deque(maxlen=queue_size)
-        self._statuses: deque[Any] = deque(maxlen=queue_size)
+        self.queue_size = queue_size
+        self._events: deque[tuple[str, Any]] = deque()  # ("update" | "status", item), in order
+        self._queued = 0  # updates in _events
         self._cond = threading.Condition()
         self._finished = False
         self._status: Any = None  # the newest LiveStatus (worker thread only)
@@ -62,14 +66,19 @@ class BackgroundPublisher:
     # --- called on the sensing thread: store and return ---------------------------------
     def push(self, update: Any) -> None:
         with self._cond:
-            if len(self._updates) == self._updates.maxlen:
+            if self._queued == self.queue_size:  # drop the oldest update (never a status)
+                oldest = next(i for i, (kind, _) in enumerate(self._events) if kind == UPDATE)
+                del self._events[oldest]
+                self._queued -= 1
                 self.dropped += 1
-            self._updates.append(update)
+            self._events.append((UPDATE, update))
+            self._queued += 1
             self._cond.notify()
 
     def status(self, status: Any) -> None:
+        """A change of the sensor's state: published in order with the updates around it."""
         with self._cond:
-            self._statuses.append(status)
+            self._events.append((STATUS, status))
             self._cond.notify()
 
     def finish(self) -> None:
@@ -91,15 +100,16 @@ class BackgroundPublisher:
         """Release what the publisher holds (default: nothing)."""
 
     # --- the worker ---------------------------------------------------------------------
-    def _next(self) -> tuple[list[Any], Any | None, bool]:
+    def _next(self) -> tuple[str | None, Any]:
+        """The next event; (None, None) once finished and all is published."""
         with self._cond:
-            while not (self._updates or self._statuses or self._finished):
+            while not (self._events or self._finished):
                 self._cond.wait()
-            statuses = list(self._statuses)
-            self._statuses.clear()
-            update = self._updates.popleft() if self._updates else None
-            done = self._finished and not self._updates
-            return statuses, update, done
+            if not self._events:
+                return None, None
+            kind, item = self._events.popleft()
+            self._queued -= kind == UPDATE
+            return kind, item
 
     def _guarded(self, method: Any, arg: Any) -> bool:
         try:
@@ -127,16 +137,17 @@ class BackgroundPublisher:
     def _work(self) -> None:
         try:
             while True:
-                statuses, update, done = self._next()
-                if statuses:
-                    self._status = statuses[-1]
-                if update is not None:
-                    start = time.perf_counter()
-                    self.published += self._guarded(self.publish, update)
-                    self.busy_s += time.perf_counter() - start
-                self._report_health(bool(statuses), update)
-                if done:
+                kind, item = self._next()
+                if kind is None:
                     return
+                if kind == STATUS:
+                    self._status = item
+                    self._report_health(True, None)
+                    continue
+                start = time.perf_counter()
+                self.published += self._guarded(self.publish, item)
+                self.busy_s += time.perf_counter() - start
+                self._report_health(False, item)
         finally:
             try:
                 self.close()
