@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import socket
+import threading
 import time
 from dataclasses import replace
 
@@ -64,6 +65,7 @@ def test_200_idle_event_streams_do_not_slow_sensing(model):
     ):
         wait_until(lambda: sensor.stats().readings >= 10, 30, "readings")
         alone = sensing_rate(sensor, 3)
+        threads = threading.active_count()
         idle = []
         try:
             for _ in range(200):  # each asks for /events, then never reads
@@ -75,6 +77,7 @@ def test_200_idle_event_streams_do_not_slow_sensing(model):
                 idle.append(sock)
             time.sleep(1)
             crowded = sensing_rate(sensor, 4)
+            added_threads = threading.active_count() - threads
             codes = []
             for sock in idle:
                 sock.settimeout(5)
@@ -82,8 +85,12 @@ def test_200_idle_event_streams_do_not_slow_sensing(model):
         finally:
             for sock in idle:
                 sock.close()
-    # today: one thread per connection, each woken per reading: 30 Hz fell to ~10 Hz
-    assert alone > 27 and crowded > 27, (alone, crowded)
+    # before: one thread per connection, each woken per reading: 30 Hz fell to ~10 Hz.
+    # Rates are compared with each other (the machine may be shared, so with a margin),
+    # not with a bar;
+    # benchmarks/viewer_idle_clients.py measures them.
+    assert crowded > 0.6 * alone, (alone, crowded)
+    assert added_threads <= 2, added_threads  # one event loop, not a thread per client
     assert codes.count(b"200") == viewer.events.max_clients  # served; the rest refused
     assert codes.count(b"503") == 200 - viewer.events.max_clients
 
