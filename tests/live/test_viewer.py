@@ -86,9 +86,8 @@ def test_200_idle_event_streams_do_not_slow_sensing(model):
             for sock in idle:
                 sock.close()
     # before: one thread per connection, each woken per reading: 30 Hz fell to ~10 Hz.
-    # Rates are compared with each other (the machine may be shared, so with a margin),
-    # not with a bar;
-    # benchmarks/viewer_idle_clients.py measures them.
+    # The rates are compared with each other, with a margin for a shared CPU, not with a
+    # fixed bar; benchmarks/viewer_idle_clients.py measures them.
     assert crowded > 0.6 * alone, (alone, crowded)
     assert added_threads <= 2, added_threads  # one event loop, not a thread per client
     assert codes.count(b"200") == viewer.events.max_clients  # served; the rest refused
