@@ -27,6 +27,7 @@ from viewer_idle_clients import tiny_model
 
 from beadsight.inference.machine import cpu_summary
 from beadsight.live.sensor import LiveSensor
+from beadsight.live.settings import LiveSettings
 from beadsight.live.stream import StreamServer
 
 CLIENT = Path(__file__).resolve().parents[1] / "examples" / "stream_client.py"
@@ -35,7 +36,7 @@ CLIENT = Path(__file__).resolve().parents[1] / "examples" / "stream_client.py"
 def run(model, rcvbuf: int, args: argparse.Namespace) -> None:
     with (
         StreamServer(model.geometry, port=0) as server,
-        LiveSensor(model, "sim", fps=args.fps, backend="torch", precision="fp32") as sensor,
+        LiveSensor(model, "sim", LiveSettings("torch", "fp32", source_fps=args.fps)) as sensor,
     ):
         sensor.add_listener(server)
         command = [sys.executable, str(CLIENT), "--port", str(server.port), "--count",

@@ -24,6 +24,7 @@ from beadsight.checkpoint import PressureModel
 from beadsight.inference.machine import cpu_summary
 from beadsight.live.bench import random_model
 from beadsight.live.sensor import LiveSensor
+from beadsight.live.settings import LiveSettings
 from beadsight.live.viewer.server import ViewerServer
 
 REQUEST = b"GET /events HTTP/1.1\r\nHost: 127.0.0.1:%d\r\nAccept: text/event-stream\r\n\r\n"
@@ -62,7 +63,7 @@ def answers(socks: list[socket.socket]) -> dict[str, int]:
 def run(model: PressureModel, clients: int, args: argparse.Namespace) -> None:
     seconds, settle, fps = args.seconds, args.settle, args.fps
     options = {} if args.max_clients is None else {"max_clients": args.max_clients}
-    with LiveSensor(model, "sim", fps=fps, backend="torch", precision="fp32") as sensor:
+    with LiveSensor(model, "sim", LiveSettings("torch", "fp32", source_fps=fps)) as sensor:
         with ViewerServer(sensor, port=0, **options) as viewer:
             socks = open_idle(viewer.port, clients)
             try:
