@@ -86,16 +86,20 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
 def _output_arguments(p: argparse.ArgumentParser) -> None:
     """Where the readings go: the web viewer and the TCP stream."""
     from beadsight.cli.options import add_option
-    from beadsight.live.stream import DEFAULT_MAX_AGE_S
-    from beadsight.live.stream import DEFAULT_PORT as STREAM_PORT
-    from beadsight.live.viewer.server import DEFAULT_HOST, DEFAULT_MAX_FPS, DEFAULT_MAX_KPA
-    from beadsight.live.viewer.server import DEFAULT_PORT as VIEWER_PORT
+    from beadsight.live.config import (
+        DEFAULT_HOST,
+        STREAM_MAX_AGE_S,
+        STREAM_PORT,
+        VIEWER_MAX_FPS,
+        VIEWER_MAX_KPA,
+        VIEWER_PORT,
+    )
 
     add_option(p, "--host", DEFAULT_HOST, "address of the viewer and stream")
     add_option(p, "--port", VIEWER_PORT, "viewer port (0 = any free port)")
     p.add_argument("--no-viewer", action="store_true", help="headless: no web viewer")
-    add_option(p, "--max-fps", DEFAULT_MAX_FPS, "viewer updates per second")
-    add_option(p, "--max-kpa", DEFAULT_MAX_KPA, "top of the fixed colour scale, kPa")
+    add_option(p, "--max-fps", VIEWER_MAX_FPS, "viewer updates per second")
+    add_option(p, "--max-kpa", VIEWER_MAX_KPA, "top of the fixed colour scale, kPa")
     p.add_argument(
         "--record-dir",
         type=Path,
@@ -107,7 +111,7 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
     add_option(
         p,
         "--stream-max-age",
-        DEFAULT_MAX_AGE_S,
+        STREAM_MAX_AGE_S,
         "the stream never sends a reading older than this, s (slow clients skip readings)",
     )
 
@@ -115,8 +119,7 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
 def _robot_arguments(p: argparse.ArgumentParser) -> None:
     """ROS 2 topics over DDS and the Foxglove WebSocket server (docs/live.md)."""
     from beadsight.cli.options import add_option
-    from beadsight.live.foxglove import DEFAULT_PORT as FOXGLOVE_PORT
-    from beadsight.live.ros_messages import DEFAULT_NAMESPACE
+    from beadsight.live.config import FOXGLOVE_PORT, ROS_NAMESPACE
 
     g = p.add_argument_group(
         "ROS 2 and Foxglove", "need the 'ros' extra: pip install 'beadsight[ros]'"
@@ -137,7 +140,7 @@ def _robot_arguments(p: argparse.ArgumentParser) -> None:
     add_option(
         g,
         "--ros-namespace",
-        DEFAULT_NAMESPACE,
+        ROS_NAMESPACE,
         "namespace of the ROS 2 topics and Foxglove channels",
     )
     g.add_argument(

@@ -33,10 +33,10 @@ import numpy as np
 from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.live import ros_messages as msg
+from beadsight.live.config import FOXGLOVE_PORT as DEFAULT_PORT
 from beadsight.live.publisher import DEFAULT_QUEUE_SIZE, BackgroundPublisher
 from beadsight.live.viewer.server import DEFAULT_MAX_KPA, colormap_bgr
 
-DEFAULT_PORT = 8766  # 8765 is the TCP readings stream
 MAX_PORT = 65535
 PRESSURE_IMAGE = "pressure_image"
 READING = "reading"

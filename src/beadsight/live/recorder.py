@@ -177,7 +177,6 @@ class PartialWriter(ClosesOrAborts):
                 self.partial.unlink(missing_ok=True)
 
 
-
 def open_recording_writer(
     path: str | Path, geometry, provenance: dict[str, Any], overwrite: bool = False
 ) -> PartialWriter:

@@ -37,9 +37,11 @@ from typing import Any
 import numpy as np
 
 from beadsight.errors import BeadSightError
+from beadsight.live.config import ROS_NAMESPACE
+
+DEFAULT_NAMESPACE = ROS_NAMESPACE  # topics and channels live under it (live/config.py)
 
 FRAME_ID = "beadsight"
-DEFAULT_NAMESPACE = "/beadsight"
 PRESSURE, FORCE, COP, CONTACT_AREA, HEALTH, CAMERA, REFERENCE_FORCE = (
     "pressure",
     "force",

@@ -36,14 +36,14 @@ import numpy as np
 
 from beadsight import __version__
 from beadsight.config import SensorGeometry
+from beadsight.live.config import DEFAULT_HOST
+from beadsight.live.config import STREAM_MAX_AGE_S as DEFAULT_MAX_AGE_S
+from beadsight.live.config import STREAM_PORT as DEFAULT_PORT
 
 logger = logging.getLogger(__name__)
 
 PROTOCOL = "beadsight-stream"
 PROTOCOL_VERSION = 1
-DEFAULT_PORT = 8765
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_MAX_AGE_S = 0.5  # a reading is never sent later than this after it was produced
 CLIENT_QUEUE_SIZE = 2  # readings waiting per client; the oldest beyond this is dropped
 HEADER_BYTES = 1024  # room for a message's header line (beside the map) in the send buffer
 ACCEPT_BACKLOG = 8

@@ -48,6 +48,10 @@ import numpy as np
 
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.geometry import mm_to_px
+from beadsight.live.config import DEFAULT_HOST
+from beadsight.live.config import VIEWER_MAX_FPS as DEFAULT_MAX_FPS
+from beadsight.live.config import VIEWER_MAX_KPA as DEFAULT_MAX_KPA
+from beadsight.live.config import VIEWER_PORT as DEFAULT_PORT
 from beadsight.live.recorder import unique_recording_path
 from beadsight.live.viewer.events import (
     KEEPALIVE_S,
@@ -60,10 +64,6 @@ from beadsight.live.viewer.http import LOCAL_HOSTS, REQUEST_TIMEOUT_S, ViewerHTT
 logger = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
-DEFAULT_PORT = 8000
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_MAX_FPS = 20.0  # viewer updates per second, independent of the sensing rate
-DEFAULT_MAX_KPA = 150.0  # top of the fixed colour scale (about an 18 N finger press)
 DEFAULT_HISTORY_S = 10.0  # length of the force trace
 COLORMAP = cv2.COLORMAP_INFERNO
 JPEG_QUALITY = 85
