@@ -7,26 +7,8 @@ from pathlib import Path
 
 
 def register(commands) -> None:
-    commands.add(
-        "live",
-        help="pressure readings from a camera, video or the simulator, with a web viewer",
-        description="Run a checkpoint on frames from a camera, a video file or the simulator "
-        "at the camera rate. Serves a web viewer (camera, kPa map, force trace, rate and "
-        "latency, record button) and a TCP stream of readings for robot programs "
-        "(docs/live.md); --ros2 publishes ROS 2 topics, --foxglove serves Foxglove; "
-        "--output records readings to HDF5 or MCAP.",
-        arguments=_live_arguments,
-        run=run_live_command,
-    )
-    commands.add(
-        "to-mcap",
-        help="convert a readings file (beadsight live --output x.h5) to MCAP with ROS 2 types",
-        description="Pressure maps as sensor_msgs/msg/Image (32FC1, kPa), total force as "
-        "geometry_msgs/msg/WrenchStamped (force.z, N), centre of pressure as "
-        "geometry_msgs/msg/PointStamped (m, frame 'beadsight'); stamps = capture times.",
-        arguments=_to_mcap_arguments,
-        run=run_to_mcap,
-    )
+    commands.add("live", run_live_command, _live_arguments)
+    commands.add("to-mcap", run_to_mcap, _to_mcap_arguments)
 
 
 def _to_mcap_arguments(p: argparse.ArgumentParser) -> None:
@@ -165,6 +147,14 @@ def _ros2_options(args: argparse.Namespace) -> dict:
 
 
 def run_live_command(args: argparse.Namespace) -> int:
+    """Pressure readings from a camera, video or the simulator, with a web viewer.
+
+    Run a checkpoint on frames from a camera, a video file or the simulator at the camera
+    rate. Serves a web viewer (camera, kPa map, force trace, rate and latency, record
+    button) and a TCP stream of readings for robot programs (docs/live.md); --ros2
+    publishes ROS 2 topics, --foxglove serves Foxglove; --output records readings to HDF5
+    or MCAP.
+    """
     from beadsight.cli.options import given
     from beadsight.live.run import run_live
     from beadsight.live.sensor import LiveSensor
@@ -204,6 +194,12 @@ def run_live_command(args: argparse.Namespace) -> int:
 
 
 def run_to_mcap(args: argparse.Namespace) -> int:
+    """Convert a readings file (beadsight live --output x.h5) to MCAP with ROS 2 types.
+
+    Pressure maps as sensor_msgs/msg/Image (32FC1, kPa), total force as
+    geometry_msgs/msg/WrenchStamped (force.z, N), centre of pressure as
+    geometry_msgs/msg/PointStamped (m, frame 'beadsight'); stamps = capture times.
+    """
     from beadsight.live.mcap import export_mcap
 
     print(f"wrote {export_mcap(args.readings, args.out, overwrite=args.overwrite)}")
