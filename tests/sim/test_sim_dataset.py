@@ -119,3 +119,34 @@ def test_simulate_cli(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "already exists" in err and str(out) in err
     assert main([*argv, "--overwrite"]) == 0
+
+
+def test_sharded_simulation_joins_every_shard_in_order(tmp_path):
+    """--workers: each shard is the session of its own seed; the joined file holds every
+    shard's frames and labels unchanged, on one increasing clock, and the same seed and
+    workers give the same file."""
+    kwargs = dict(seed=SEED, image_size=32, pouches=3, variety="train", progress=False)
+    joined = simulate_dataset(tmp_path / "joined.h5", 5, workers=2, **kwargs)
+    again = simulate_dataset(tmp_path / "again.h5", 5, workers=2, **kwargs)
+    with open_dataset(joined) as d, open_dataset(again) as e:
+        shards = d.provenance["simulator"]["shards"]
+        assert [(s["presses"], s["pouches"]) for s in shards] == [(4, 2), (1, 1)]
+        assert d.num_presses == 5
+        assert np.all(np.diff(d.timestamp_s) > 0)
+        assert np.array_equal(d.frames[:], e.frames[:])
+        first = simulate_dataset(
+            tmp_path / "shard0.h5",
+            4,
+            seed=shards[0]["seed"],
+            image_size=32,
+            pouches=2,
+            variety="train",
+            progress=False,
+        )
+        with open_dataset(first) as s0:
+            n = len(s0)
+            assert np.array_equal(d.frames[:n], s0.frames[:])
+            assert np.array_equal(d.force_n[:n], s0.force_n)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again.h5", "joined.h5", "shard0.h5"]
+    with pytest.raises(SimulationError, match="workers"):
+        simulate_dataset(tmp_path / "x.h5", 2, workers=0)

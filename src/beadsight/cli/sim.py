@@ -73,6 +73,13 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
         "this split of the range of real builds (docs/simulator.md); with --pouches N, "
         "a base-model training set (train) or builds no base model saw (heldout)",
     )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="simulate in this many processes, each a shard of whole pouches with its own "
+        "seed drawn from --seed, joined into --out (needs --pouches >= 2; default 1)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -97,6 +104,7 @@ def _simulate(args: argparse.Namespace) -> int:
         variety=args.variety,
         overwrite=args.overwrite,
         progress=not args.no_progress,
+        workers=args.workers,
         **given(seed=args.seed, pouches=args.pouches),
     )
     print(f"wrote {out}")

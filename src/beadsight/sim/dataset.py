@@ -110,6 +110,7 @@ def simulate_dataset(
     variety: str | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    workers: int = 1,
 ) -> Path:
     """Simulate ``presses`` presses and write them as a dataset at ``out``. Returns the path.
 
@@ -122,6 +123,9 @@ def simulate_dataset(
     split of :mod:`beadsight.sim.variety` (``config`` is the base: image size, fps,
     rig). An existing ``out`` is refused unless ``overwrite``. Frames are RGB;
     provenance records the seed, the pouches, the full config and each build's factors.
+    workers > 1: simulate in that many processes, each a shard of whole pouches with
+    its own seed (spawned from ``seed``), joined into ``out`` in shard order (see
+    :func:`simulate_sharded`); the same seed and workers give the same dataset.
     """
     out = Path(out)
     if isinstance(presses, bool) or int(presses) != presses or presses < 1:
@@ -132,7 +136,21 @@ def simulate_dataset(
         raise SimulationError(f"pouches must be an integer in [1, presses], got {pouches!r}")
     if compression not in (None, "gzip", "lzf"):
         raise SimulationError(f"compression must be None, 'gzip' or 'lzf', got {compression!r}")
+    if isinstance(workers, bool) or int(workers) != workers or workers < 1:
+        raise SimulationError(f"workers must be a positive integer, got {workers!r}")
     cfg = sim_config_for(n_beads, image_size, fps, config)
+    if workers > 1 and pouches > 1:
+        return simulate_sharded(
+            out,
+            presses,
+            seed,
+            cfg,
+            pouches,
+            int(workers),
+            compression=compression,
+            variety=variety,
+            progress=progress,
+        )
     per_pouch = math.ceil(presses / pouches) if pouches > 1 else None
     if variety is not None and variety not in SPLITS:
         raise SimulationError(f"variety must be None or one of {SPLITS}, got {variety!r}")
@@ -215,3 +233,121 @@ def _flush(writer: DatasetWriter, frames: list[SimFrame], log: ScaleLog) -> None
         valid,
         t,
     )
+
+
+SHARD_GAP_S = 1.0  # idle time between two shards joined into one dataset
+
+
+def _shard_plan(presses: int, pouches: int, workers: int, seed: int) -> list[tuple[int, int, int]]:
+    """(presses, pouches, seed) of each shard: whole pouches, as even as they split."""
+    per_pouch = math.ceil(presses / pouches)
+    pouch_counts = [len(a) for a in np.array_split(np.arange(pouches), min(workers, pouches))]
+    seeds = [
+        int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(len(pouch_counts))
+    ]
+    plan, left = [], presses
+    for count, shard_seed in zip(pouch_counts, seeds, strict=True):
+        n = min(left, count * per_pouch)
+        if n > 0:
+            plan.append((n, min(count, n), shard_seed))
+            left -= n
+    return plan
+
+
+def _simulate_shard(
+    out: str,
+    presses: int,
+    seed: int,
+    pouches: int,
+    cfg: SimConfig,
+    compression: str | None,
+    variety: str | None,
+) -> str:
+    simulate_dataset(
+        out,
+        presses,
+        seed,
+        config=cfg,
+        compression=compression,
+        pouches=pouches,
+        variety=variety,
+        overwrite=True,
+        progress=False,
+    )
+    return out
+
+
+def simulate_sharded(
+    out: str | Path,
+    presses: int,
+    seed: int,
+    cfg: SimConfig,
+    pouches: int,
+    workers: int,
+    *,
+    compression: str | None = None,
+    variety: str | None = None,
+    progress: bool = True,
+) -> Path:
+    """Simulate shards of whole pouches in ``workers`` processes and join them into ``out``.
+
+    Shard ``k`` is a session of its own (seed ``SeedSequence(seed).spawn(...)[k]``);
+    the joined dataset keeps each shard's frames and labels and shifts its timestamps
+    to follow the previous shard after ``SHARD_GAP_S`` (presses are found from force,
+    so they stay as they were). Shard files live in a temporary folder beside ``out``
+    and are removed; ``out`` appears only when complete.
+    """
+    import tempfile
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm import tqdm
+
+    from beadsight.data.dataset import open_dataset
+
+    out = Path(out)
+    plan = _shard_plan(presses, pouches, workers, seed)
+    with tempfile.TemporaryDirectory(prefix=f".{out.name}.shards-", dir=out.parent) as tmp:
+        paths = [str(Path(tmp) / f"shard{k:03d}.h5") for k in range(len(plan))]
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            jobs = [
+                pool.submit(_simulate_shard, path, n, s, p, cfg, compression, variety)
+                for path, (n, p, s) in zip(paths, plan, strict=True)
+            ]
+            for job in tqdm(jobs, unit="shard", desc="simulate", disable=not progress):
+                job.result()
+        with open_dataset(paths[0]) as first:
+            provenance = {k: v for k, v in first.provenance.items() if k != "created_unix"}
+        sim = provenance["simulator"]
+        sim.update(
+            seed=int(seed),
+            presses=int(presses),
+            pouches=int(pouches),
+            workers=int(workers),
+            presses_per_pouch=math.ceil(presses / pouches),
+            shards=[{"presses": n, "pouches": p, "seed": s} for n, p, s in plan],
+        )
+        if variety is not None:
+            sim["variety"]["pouch_factors"] = "per shard: re-draw them from each shard's seed"
+        with DatasetWriter(
+            out, cfg.geometry, fps=cfg.fps, provenance=provenance, compression=compression
+        ) as writer:
+            _join(writer, paths, open_dataset)
+    return out
+
+
+def _join(writer: DatasetWriter, paths: list[str], open_dataset) -> None:
+    next_start = None
+    for path in paths:
+        with open_dataset(path) as shard:
+            t = shard.timestamp_s
+            shift = 0.0 if next_start is None else next_start - t[0]
+            for a in range(0, len(shard), 1024):
+                b = min(a + 1024, len(shard))
+                writer.append(
+                    shard.read_frames(a, b),
+                    shard.force_n[a:b],
+                    shard.position_mm[a:b],
+                    shard.valid[a:b],
+                    t[a:b] + shift,
+                )
+            next_start = t[-1] + shift + SHARD_GAP_S
