@@ -42,6 +42,7 @@ from beadsight.model import FramesToPressure, UNet, infer_model_config
 FORMAT = "beadsight-checkpoint"
 FORMAT_VERSION = 2  # 2: model "window" renamed "frames" (version 1 files still load)
 SHIPPED_MODEL = "sim_model.pt"  # the simulated-sensor model, in the package's assets folder
+BASE_MODEL = "base_model.pt"  # the any-pouch base model that `calibrate` fine-tunes (assets)
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
 
 
@@ -487,12 +488,13 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return PressureModel(module, meta, source=str(path)).to(map_location)
 
 
-def shipped_model_path() -> Path:
-    """Path of the model shipped with the package; :class:`CheckpointError` if this install lacks it."""
-    path = Path(str(importlib.resources.files("beadsight").joinpath("assets", SHIPPED_MODEL)))
+def shipped_model_path(name: str = SHIPPED_MODEL) -> Path:
+    """Path of a model shipped with the package (``SHIPPED_MODEL``, the simulated sensor's,
+    or ``BASE_MODEL``, the any-pouch base); :class:`CheckpointError` if this install lacks it."""
+    path = Path(str(importlib.resources.files("beadsight").joinpath("assets", name)))
     if not path.is_file():
         raise CheckpointError(
-            f"the shipped sim model {path} is missing from this install; pass --checkpoint PATH "
+            f"the shipped model {path} is missing from this install; pass a checkpoint PATH "
             "(a model trained with `beadsight train`, or `beadsight demo --train`)"
         )
     return path
