@@ -28,7 +28,7 @@ import numpy as np
 
 from beadsight import __version__
 from beadsight.config import REFERENCE_G_TO_N
-from beadsight.data.dataset import DatasetWriter
+from beadsight.data.dataset import DatasetWriter, open_dataset
 from beadsight.errors import BeadSightError
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
 from beadsight.sim.session import SimFrame, SimulatedSession
@@ -254,29 +254,6 @@ def _shard_plan(presses: int, pouches: int, workers: int, seed: int) -> list[tup
     return plan
 
 
-def _simulate_shard(
-    out: str,
-    presses: int,
-    seed: int,
-    pouches: int,
-    cfg: SimConfig,
-    compression: str | None,
-    variety: str | None,
-) -> str:
-    simulate_dataset(
-        out,
-        presses,
-        seed,
-        config=cfg,
-        compression=compression,
-        pouches=pouches,
-        variety=variety,
-        overwrite=True,
-        progress=False,
-    )
-    return out
-
-
 def simulate_sharded(
     out: str | Path,
     presses: int,
@@ -302,15 +279,14 @@ def simulate_sharded(
 
     from tqdm import tqdm
 
-    from beadsight.data.dataset import open_dataset
-
     out = Path(out)
     plan = _shard_plan(presses, pouches, workers, seed)
     with tempfile.TemporaryDirectory(prefix=f".{out.name}.shards-", dir=out.parent) as tmp:
         paths = [str(Path(tmp) / f"shard{k:03d}.h5") for k in range(len(plan))]
         with ProcessPoolExecutor(max_workers=workers) as pool:
+            shard_args = dict(config=cfg, compression=compression, variety=variety)
             jobs = [
-                pool.submit(_simulate_shard, path, n, s, p, cfg, compression, variety)
+                pool.submit(simulate_dataset, path, n, s, pouches=p, progress=False, **shard_args)
                 for path, (n, p, s) in zip(paths, plan, strict=True)
             ]
             for job in tqdm(jobs, unit="shard", desc="simulate", disable=not progress):
@@ -331,11 +307,11 @@ def simulate_sharded(
         with DatasetWriter(
             out, cfg.geometry, fps=cfg.fps, provenance=provenance, compression=compression
         ) as writer:
-            _join(writer, paths, open_dataset)
+            _join(writer, paths)
     return out
 
 
-def _join(writer: DatasetWriter, paths: list[str], open_dataset) -> None:
+def _join(writer: DatasetWriter, paths: list[str]) -> None:
     next_start = None
     for path in paths:
         with open_dataset(path) as shard:
