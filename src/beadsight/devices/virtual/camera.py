@@ -25,7 +25,7 @@ import dataclasses
 import logging
 import math
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -173,8 +173,11 @@ class SimCamera(PlaybackCamera):
 
     Frames are (S, S, 3) uint8 RGB at ``image_size`` px, paced at ``fps`` (default: the
     simulator's, 30); each carries the simulator's true normal force as
-    ``reference_force_n``. presses: None for an endless session of random presses, or
-    that many presses, after which the camera ends (``loop`` plays them again).
+    ``reference_force_n``. presses: None for an endless session of random presses, that
+    many presses, or a sequence of :class:`~beadsight.sim.press.Press` (a scripted
+    session), after which the camera ends (``loop`` plays them again). drift: a
+    :class:`~beadsight.sim.drift.DriftSpec` (or its ``--sim-drift`` text) applied to the
+    frames, timed from the session's first frame.
     """
 
     def __init__(
@@ -184,21 +187,28 @@ class SimCamera(PlaybackCamera):
         seed: int = 0,
         config: Any = None,
         *,
-        presses: int | None = None,
+        presses: int | Sequence[Any] | None = None,
+        drift: Any = None,
         **options: Any,
     ):
         from beadsight.sim.config import SimConfig
+        from beadsight.sim.drift import parse_drift
 
         base = config if config is not None else SimConfig()
         fps = float(fps or base.fps or DEFAULT_FPS)
         self.config = dataclasses.replace(base, image_size_px=image_size, fps=fps)
         self.seed = seed
         self.presses = presses
+        self.drift = parse_drift(drift)
         options.setdefault("name", f"sim (seed {seed})")
         super().__init__(self._session, fps, channel_order="RGB", **options)
 
     def _session(self) -> Iterator[tuple[np.ndarray, float]]:
+        from beadsight.sim.drift import DriftRenderer
         from beadsight.sim.session import SimulatedSession
 
+        drift = DriftRenderer(self.drift, self.config.image_size_px, self.config.sensor_size_mm)
+        start_s = None
         for record in SimulatedSession(self.config, self.seed, self.presses):
-            yield record.frame_rgb, record.true_force_n
+            start_s = record.timestamp_s if start_s is None else start_s
+            yield drift.apply(record.frame_rgb, record.timestamp_s - start_s), record.true_force_n
