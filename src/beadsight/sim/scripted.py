@@ -16,7 +16,7 @@ from beadsight.sim.config import SimConfig
 from beadsight.sim.press import MM_MIN_PER_MM_S, Press
 
 DEFAULT_HOLD_S = 60.0  # the steady-load target: a press held this long
-DEFAULT_REST_S = 3.0  # unloaded, still frames before the press
+DEFAULT_REST_S = 5.0  # unloaded, still frames before the press (the reference is taken)
 DEFAULT_DEPTH_MM = 1.2  # below the pouch surface (about 3-5 N on the default pouch)
 
 
