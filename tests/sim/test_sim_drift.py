@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from beadsight.errors import ConfigError
+from beadsight.sim.config import SimConfig
 from beadsight.sim.drift import DriftRenderer, DriftSpec, parse_drift
 from beadsight.sim.simulator import PouchSimulator
-from beadsight.sim.config import SimConfig
 
 SIZE = 64
 
