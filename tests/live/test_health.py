@@ -119,7 +119,10 @@ def test_a_press_held_60_s_keeps_its_force_within_5_percent():
     from beadsight.live.steady import run_steady_press
 
     held = run_steady_press(hold_s=60.0)
-    assert held.seconds > 55 and held.max_deviation_pct < 5.0, held.summary()
+    assert held.seconds > 55 and held.spread_pct < 5.0, held.summary()  # kept its force
+    assert held.end_deviation_pct < 5.0, held.summary()  # ... and it is the true one
+    # the simulator's true force relaxes ~4 % during the hold; the held reading does not
+    assert held.max_deviation_pct < 10.0, held.summary()
     assert held.health == "ok", held.summary()  # the reference came from the rest before
     alone = run_steady_press(hold_s=60.0, hold=False)
-    assert alone.end_deviation_pct > 50, alone.summary()  # what the hold prevents
+    assert alone.end_deviation_pct > 50 and alone.spread_pct > 50, alone.summary()

@@ -23,6 +23,7 @@ steady load is never taken for the rest state.
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 
 import numpy as np
 
@@ -42,7 +43,7 @@ class SteadyHold:
         self.release_change = float(release_change)
         self._held: PressureReading | None = None
         self._start: np.ndarray | None = None  # averaged thumbnail when the hold began
-        self._last_contact: PressureReading | None = None
+        self._recent: deque[PressureReading] = deque(maxlen=CONTACT_MEMORY_FRAMES)
         self._since_contact = CONTACT_MEMORY_FRAMES + 1
         self.holds = 0  # holds begun
 
@@ -56,7 +57,8 @@ class SteadyHold:
         return self.holding or self._since_contact <= CONTACT_MEMORY_FRAMES
 
     def reset(self) -> None:
-        self._held = self._start = self._last_contact = None
+        self._held = self._start = None
+        self._recent.clear()
         self._since_contact = CONTACT_MEMORY_FRAMES + 1
 
     def apply(
@@ -64,16 +66,15 @@ class SteadyHold:
     ) -> PressureReading:
         """The reading to publish for ``reading``. still: the frames are still now;
         current: the averaged thumbnail of the newest frames (stillness detector)."""
-        if reading.has_contact:
-            self._last_contact, self._since_contact = reading, 0
-        else:
-            self._since_contact += 1
+        self._recent.append(reading)
+        self._since_contact = 0 if reading.has_contact else self._since_contact + 1
         if self._held is not None and current is not None and self._start is not None:
             if change(current, self._start) > self.release_change:
                 self._held = self._start = None  # the load changed
-        if self._held is None and still and current is not None and self._last_contact:
-            if self._since_contact <= CONTACT_MEMORY_FRAMES:
-                self._held, self._start = self._last_contact, current.copy()
+        if self._held is None and still and current is not None:
+            contact = [r for r in self._recent if r.has_contact]
+            if contact:
+                self._held, self._start = contact[-1], current.copy()
                 self.holds += 1
         if self._held is None or not self.enabled:
             return reading

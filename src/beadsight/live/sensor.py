@@ -278,7 +278,8 @@ class LiveSensor:
         return self._status
 
     def stats(self) -> LiveStats:
-        return self._meter.snapshot()
+        """Rate and latency of sensing, with the source's camera truth."""
+        return self._meter.snapshot().with_camera(self.source)
 
     def _require_started(self) -> PressureModel:
         if self.model is None:

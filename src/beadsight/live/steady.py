@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 SETTLE_S = 1.0  # the hold is judged from this long after the finger stops
+RISE_S = 0.5  # ... to this long before the finger rises (the loaded frames' end)
 HELD_FRACTION = 0.5  # frames whose true force is above this fraction of its peak are held
 
 
@@ -28,6 +29,7 @@ class SteadyPressResult:
     published_mean_n: float
     published_first_n: float
     published_last_n: float
+    spread_pct: float  # (max - min) / mean of the published force over the held frames
     max_deviation_pct: float  # largest |published - true| / true over the held frames
     end_deviation_pct: float  # the same for the last held second
     health: str  # the health state at the end of the hold
@@ -36,7 +38,7 @@ class SteadyPressResult:
         return (
             f"{self.seconds:.1f} s held: true {self.true_mean_n:.3f} N, published "
             f"{self.published_first_n:.3f} -> {self.published_last_n:.3f} N (mean "
-            f"{self.published_mean_n:.3f}), max deviation {self.max_deviation_pct:.1f} %, "
+            f"{self.published_mean_n:.3f}, spread {self.spread_pct:.1f} %), max deviation {self.max_deviation_pct:.1f} %, "
             f"at the end {self.end_deviation_pct:.1f} %, health {self.health}"
         )
 
@@ -64,7 +66,13 @@ def run_steady_press(
     model = load_checkpoint(checkpoint if checkpoint is not None else shipped_model_path())
     config, presses = steady_press(hold_s)
     camera = SimCamera(
-        model.image_size, config=config, presses=presses, drift=drift, seed=seed, realtime=False
+        model.image_size,
+        config=config,
+        presses=presses,
+        drift=drift,
+        seed=seed,
+        realtime=False,
+        queue_frames=1,  # one frame at a time: a reading for every frame, as at 30 Hz
     )
     settings = dataclasses.replace(settings or LiveSettings(), hold=hold)
     sensor = LiveSensor(model, camera, settings).open()
@@ -84,8 +92,8 @@ def _judge(rows: list[tuple[float, float, float, str]]) -> SteadyPressResult:
     published = np.array([r[1] for r in rows])
     true = np.array([r[2] for r in rows])
     loaded = true > HELD_FRACTION * true.max()
-    start = t[loaded][0] + SETTLE_S
-    held = loaded & (t >= start)
+    start, end = t[loaded][0] + SETTLE_S, t[loaded][-1] - RISE_S
+    held = loaded & (t >= start) & (t <= end)
     if not held.any():
         raise ValueError("the press was not held long enough to judge")
     deviation = np.abs(published[held] - true[held]) / true[held] * 100
@@ -97,6 +105,7 @@ def _judge(rows: list[tuple[float, float, float, str]]) -> SteadyPressResult:
         published_mean_n=float(published[held].mean()),
         published_first_n=float(published[held][0]),
         published_last_n=float(published[held][-1]),
+        spread_pct=float(np.ptp(published[held]) / max(abs(published[held].mean()), 1e-9) * 100),
         max_deviation_pct=float(deviation.max()),
         end_deviation_pct=float(end_dev.max()),
         health=rows[int(np.flatnonzero(held)[-1])][3],

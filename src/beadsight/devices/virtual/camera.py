@@ -15,8 +15,12 @@ camera that refuses a mode.
 
 Faults (thread-safe): :meth:`VirtualCamera.unplug` (capture stops; reads raise
 CameraDisconnectedError once the queue is empty; :meth:`~BufferedCamera.connect` plugs
-it back in) and :meth:`VirtualCamera.stall` (no frames for a while; the reader counts
-the gap as dropped frames).
+it back in), :meth:`VirtualCamera.stall` (no frames for a while; the reader counts
+the gap as dropped frames), :meth:`VirtualCamera.drop` (lose the next frames, like a
+USB bus that lost them), :meth:`VirtualCamera.duplicate` (hand out the previous image
+again instead of the next frames, like a driver re-reading its last buffer) and
+:meth:`VirtualCamera.deliver_at` (run slower than the fps it claims, like OpenCV's V4L2
+backend on some cameras).
 """
 
 from __future__ import annotations
@@ -79,6 +83,9 @@ class VirtualCamera(BufferedCamera):
         self._lock = threading.Lock()
         self._unplugged = False
         self._stall_s = 0.0
+        self._duplicates = 0  # the next this many frames repeat the previous image
+        self._last_image: np.ndarray | None = None
+        self._deliver_fps: float | None = None  # the rate really delivered (None: fps)
 
     # --- faults -------------------------------------------------------------------------
     def unplug(self) -> None:
@@ -94,6 +101,23 @@ class VirtualCamera(BufferedCamera):
         with self._lock:
             self._stall_s += float(seconds)
 
+    def drop(self, frames: int) -> None:
+        """Lose the next ``frames`` frames (their time passes without a capture)."""
+        self.stall(frames / self.requested_fps)
+
+    def duplicate(self, frames: int) -> None:
+        """Deliver the previous image again as the next ``frames`` frames."""
+        with self._lock:
+            self._duplicates += int(frames)
+
+    def deliver_at(self, fps: float | None) -> None:
+        """Deliver ``fps`` frames per second while claiming :attr:`requested_fps` (None:
+        deliver what is claimed)."""
+        if fps is not None and not 0 < fps:
+            raise ValueError(f"{self.name}: deliver_at fps must be > 0, got {fps}")
+        with self._lock:
+            self._deliver_fps = fps
+
     # --- BufferedCamera hooks -----------------------------------------------------------
     def _open(self) -> float:
         with self._lock:
@@ -104,13 +128,21 @@ class VirtualCamera(BufferedCamera):
     def _pace_delay_s(self) -> float:
         with self._lock:
             stall, self._stall_s = self._stall_s, 0.0
+            if self._deliver_fps is not None:  # each frame comes this much later
+                stall += max(1.0 / self._deliver_fps - 1.0 / self.requested_fps, 0.0)
         return stall
 
     def _grab(self) -> Captured | None:
         with self._lock:
             if self._unplugged:
                 return self._end("stopped delivering frames (unplugged)")
-        return self._next_frame()
+            if self._duplicates > 0 and self._last_image is not None:
+                self._duplicates -= 1
+                return self._last_image.copy(), math.nan
+        captured = self._next_frame()
+        if captured is not None:
+            self._last_image = captured[0]
+        return captured
 
     def _next_frame(self) -> Captured | None:
         return self.render_fn(), math.nan
