@@ -13,12 +13,10 @@ import numpy as np
 import pytest
 
 from beadsight.errors import BeadSightError
-from beadsight.inference.predictor import PressureReading
+from beadsight.live.checkup import drift_timeline
 from beadsight.live.health import HealthMonitor, HealthSettings, judge
 from beadsight.live.rest import REST_PX, RestAverage, load_rest
-from beadsight.live.watch import SensorWatch
 from beadsight.sim.config import SimConfig
-from beadsight.sim.drift import DriftRenderer, parse_drift
 from beadsight.sim.press import Press
 from beadsight.sim.session import SimulatedSession
 
@@ -26,34 +24,19 @@ SIZE = 64
 FPS = 30.0
 
 
-def rest_frames(seconds: float, drift: str | None = None, seed: int = 0):
-    """(t_s, frame) of the simulated pouch at rest for ``seconds``, with ``drift``."""
+def rest_frames(seconds: float):
+    """(t_s, frame) of the simulated pouch at rest for ``seconds``."""
     base = SimConfig(image_size_px=SIZE)
     cfg = dataclasses.replace(base, dwell_s=seconds)
-    above = Press(0.0, 0.0, cfg.clear_z_mm)  # the finger never reaches the pouch
-    render = DriftRenderer(parse_drift(drift), SIZE, cfg.sensor_size_mm)
-    for record in SimulatedSession(cfg, seed, [above]):
-        t = record.frame_index / FPS
-        if t > seconds:
+    for record in SimulatedSession(cfg, 0, [Press(0.0, 0.0, cfg.clear_z_mm)]):
+        if record.frame_index / FPS > seconds:
             return
-        yield t, render.apply(record.frame_rgb, t)
+        yield record.frame_index / FPS, record.frame_rgb
 
 
-def zero_reading(t_s: float) -> PressureReading:
-    """What the sensor reads at rest: no pressure (the simulator's truth here)."""
-    empty = np.zeros((SIZE, SIZE), np.float32)
-    return PressureReading(empty, 0.0, np.full(2, np.nan), False, empty > 0, 0.0, t_s, 0.0, 0, 0)
-
-
-def states_over(drift: str | None, seconds: float, **watch) -> dict[str, float]:
-    """First frame time (s) of each health state under ``drift``."""
-    watch = SensorWatch(SimConfig().sensor_size_mm, **watch)
-    first: dict[str, float] = {}
-    for t, frame in rest_frames(seconds, drift):
-        _, report = watch.process(frame, zero_reading(t))
-        first.setdefault(report.state, t)
-    watch.close()
-    return first
+def states_over(drift: str | None, seconds: float) -> dict[str, float]:
+    """First frame time (s) of each health state under ``drift``, at rest."""
+    return drift_timeline(drift, seconds, image_size=SIZE)
 
 
 def test_no_drift_stays_ok():

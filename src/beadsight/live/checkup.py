@@ -47,3 +47,36 @@ def run_checkup(
             )
         reference.save(save_rest)
     return report
+
+
+def drift_timeline(
+    drift: str | None, seconds: float, *, image_size: int = 64, seed: int = 0
+) -> dict[str, float]:
+    """Simulated time (s) at which each health state first shows while the simulated pouch
+    rests (finger above it: the true force, and so the reading, is 0 N) under ``drift``
+    (:func:`beadsight.sim.drift.parse_drift` text); frames at ``image_size`` px, 30 fps."""
+    import dataclasses
+
+    import numpy as np
+
+    from beadsight.inference.predictor import PressureReading
+    from beadsight.live.watch import SensorWatch
+    from beadsight.sim.config import SimConfig
+    from beadsight.sim.drift import DriftRenderer, parse_drift
+    from beadsight.sim.press import Press
+    from beadsight.sim.session import SimulatedSession
+
+    cfg = dataclasses.replace(SimConfig(image_size_px=image_size), dwell_s=float(seconds))
+    render = DriftRenderer(parse_drift(drift), image_size, cfg.sensor_size_mm)
+    watch = SensorWatch(cfg.sensor_size_mm)
+    empty = np.zeros((image_size, image_size), np.float32)
+    first: dict[str, float] = {}
+    for record in SimulatedSession(cfg, seed, [Press(0.0, 0.0, cfg.clear_z_mm)]):
+        t = record.frame_index / cfg.fps
+        if t > seconds:
+            break
+        zero = PressureReading(empty, 0.0, np.full(2, np.nan), False, empty > 0, 0.0, t, 0, 0, 0)
+        _, report = watch.process(render.apply(record.frame_rgb, t), zero)
+        first.setdefault(report.state, t)
+    watch.close()
+    return first
