@@ -4,7 +4,7 @@ sensor that tracks drift gives them, issue 15 item 3) and a camera at its frame 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, replace
 
 from isolated import run_isolated
 from live_helpers import ScriptedSource
@@ -23,11 +23,6 @@ class Health:
     message: str = ""
 
 
-@dataclass(frozen=True)
-class UpdateWithHealth(LiveUpdate):
-    health: Health | None = None
-
-
 class HealthTagger:
     """A listener in front of a publisher that gives each update a health state: ok, then
     drifting, then recalibrate (a third of ``total`` updates each), with figures."""
@@ -39,8 +34,7 @@ class HealthTagger:
         state = HEALTH_STATES[min(3 * self.count // self.total, 2)]
         figures = {"bead_shift_px": 0.5 * self.count, "force_offset_n": float("nan"), "n": 3}
         health = Health(state, figures, f"{state}: see docs/live.md")
-        values = {f.name: getattr(update, f.name) for f in fields(LiveUpdate)}
-        self.target.push(UpdateWithHealth(**values, health=health))
+        self.target.push(replace(update, health=health))
         self.count += 1
 
     def status(self, status) -> None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from beadsight.cli.health import drift_arguments
+
 
 def register(commands) -> None:
     commands.add("live", run_live_command, _live_arguments)
@@ -49,6 +51,7 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--loop", action="store_true", help="restart a video file at its end")
     p.add_argument("--seed", type=int, default=None, help="simulator seed")
+    drift_arguments(p)
     _output_arguments(p)
     _robot_arguments(p)
     p.add_argument(
@@ -165,6 +168,9 @@ def run_live_command(args: argparse.Namespace) -> int:
         source_fps=args.fps,
         loop=args.loop,
         max_readings=args.frames,
+        rest_file=args.rest,
+        sim_drift=args.sim_drift,
+        hold=not args.no_hold,
         **given(backend=args.backend, precision=args.precision, seed=args.seed),
     )
     sensor = LiveSensor(args.checkpoint, settings=settings, **given(source=args.source))

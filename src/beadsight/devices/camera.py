@@ -22,6 +22,9 @@ Frame accounting (:attr:`BufferedCamera.stats`):
   (live cameras; files wait for the reader instead).
 * ``skipped``: frames ``read_latest`` / ``async_read`` passed over on purpose to return
   the newest.
+* ``duplicated``, ``delivered_fps``, ``requested_fps``, ``slow``: camera truth
+  (:mod:`beadsight.devices.truth`): frames identical to the one before, and the rate the
+  camera really delivers against the one asked (a warning below 90 %).
 
 When capture fails (end of file, camera unplugged) the reader stops; reads return the
 frames still queued, then raise :class:`CameraEndedError` (the normal end of a finite
@@ -52,6 +55,7 @@ from beadsight.devices.base import (
 )
 from beadsight.devices.clock import SimClock
 from beadsight.devices.reader import ReaderThread
+from beadsight.devices.truth import FrameTruth
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +80,10 @@ class CameraStats:
     dropped: int
     overflowed: int
     skipped: int
+    duplicated: int = 0  # frames identical to the one before (devices.truth)
+    delivered_fps: float = float("nan")  # capture rate over the last 2 s (host time)
+    requested_fps: float = float("nan")  # the rate asked of the camera
+    slow: bool = False  # delivered_fps below 90 % of requested_fps
 
 
 def verify_mode(
@@ -176,6 +184,7 @@ class BufferedCamera(DeviceContext):
         self._captured = self._delivered = self._dropped = self._overflowed = self._skipped = 0
         self._last_capture_mono: float | None = None
         self._last_t_unix = -math.inf
+        self._truth = FrameTruth(name)
 
     # --- subclass hooks -----------------------------------------------------------------
     def _open(self) -> float:
@@ -233,6 +242,7 @@ class BufferedCamera(DeviceContext):
             self._latest = None
             self._last_capture_mono = None
             self._ended = False
+            self._truth.restart(fps)
         self._reader = ReaderThread(f"{self.name} reader", self._run)
         self._stop = self._reader.stop_event
         self._reader.start()
@@ -257,8 +267,17 @@ class BufferedCamera(DeviceContext):
     @property
     def stats(self) -> CameraStats:
         with self._cond:
+            truth = self._truth
             return CameraStats(
-                self._captured, self._delivered, self._dropped, self._overflowed, self._skipped
+                self._captured,
+                self._delivered,
+                self._dropped,
+                self._overflowed,
+                self._skipped,
+                truth.duplicated,
+                truth.delivered_fps,
+                truth.requested_fps,
+                truth.slow,
             )
 
     @property
@@ -373,6 +392,7 @@ class BufferedCamera(DeviceContext):
         with self._cond:
             if self.live:
                 self._count_gap(t_mono)
+                self._truth.add(image, t_mono)
             else:
                 while len(self._queue) >= self._queue_frames and not self._stop.is_set():
                     self._cond.wait(QUEUE_FULL_POLL_S)

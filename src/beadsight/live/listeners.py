@@ -37,6 +37,8 @@ class LiveUpdate:
         reading left the predictor).
     reference_force_n: the true force if the source knows it (the simulator), else NaN.
     source_index: the frame's index in the source's stream.
+    health: the sensor's drift health (:class:`~beadsight.live.health.HealthReport`:
+        ``state``, ``message``, ``figures``), or None where it is not tracked.
     """
 
     reading: PressureReading
@@ -44,6 +46,7 @@ class LiveUpdate:
     latency_s: float
     reference_force_n: float
     source_index: int
+    health: Any = None
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,7 @@ from beadsight.devices.base import (
 )
 from beadsight.errors import BeadSightError
 from beadsight.inference.predictor import PressurePredictor, PressureReading
+from beadsight.live.health import HealthReport
 from beadsight.live.listeners import (
     READING_QUEUE_SIZE,
     STATES,
@@ -66,6 +67,7 @@ from beadsight.live.listeners import (
     UpdateQueue,
 )
 from beadsight.live.recorder import RECORDER_QUEUE_SIZE, Recorder, open_recording_writer
+from beadsight.live.rest import load_rest
 from beadsight.live.settings import (
     FIRST_FRAME_TIMEOUT_S,
     NO_SIGNAL_AFTER_S,
@@ -79,6 +81,7 @@ from beadsight.live.sources import (
     open_camera,
 )
 from beadsight.live.stats import STATS_WINDOW_S, LiveStats, RateMeter
+from beadsight.live.watch import SensorWatch
 
 logger = logging.getLogger(__name__)
 
@@ -154,6 +157,7 @@ class LiveSensor:
         self._meter = RateMeter(stale_after_s=settings.no_signal_after_s)
         self._status = LiveStatus("starting", "not started", time.time())
         self._last_timestamp = -math.inf
+        self.watch: SensorWatch | None = None
 
     # --- life cycle ----------------------------------------------------------------
     def open(self) -> LiveSensor:
@@ -165,6 +169,7 @@ class LiveSensor:
         if self.model is not None:
             return self
         settings = self.settings
+        reference = load_rest(settings.rest_file) if settings.rest_file else None
         self.predictor = PressurePredictor.from_checkpoint(
             self._checkpoint, **settings.predictor_arguments()
         )
@@ -177,6 +182,7 @@ class LiveSensor:
                 loop=settings.loop,
                 seed=settings.seed,
                 any_size=settings.preprocess != "auto",
+                drift=settings.sim_drift,
             )
             self.source.connect()
             first = self.source.read_latest(self._first_frame_timeout_s)
@@ -188,8 +194,28 @@ class LiveSensor:
             self._close_source_and_predictor()
             raise
         self.model, self._first = model, first
+        self.watch = self._make_watch(model, reference)
         logger.info("live: %s, source %s", self.predictor, self.source.name)
         return self
+
+    def _make_watch(self, model: PressureModel, reference: Any) -> SensorWatch | None:
+        """Stillness, the steady-load hold and health (None: neither health nor hold)."""
+        settings = self.settings
+        if not (settings.health or settings.hold):
+            return None
+        return SensorWatch(
+            model.geometry.sensor_size_mm,
+            hold=settings.hold,
+            reference=reference,
+            background=True,
+        )
+
+    @property
+    def health(self) -> HealthReport | None:
+        """The newest health report (None where health is not tracked)."""
+        if self.watch is None or not self.settings.health:
+            return None
+        return self.watch.monitor.report
 
     def start(self) -> LiveSensor:
         """:meth:`open` (if not done yet), then start the sensing thread."""
@@ -210,6 +236,8 @@ class LiveSensor:
             self.stop_recording()
         finally:
             self._close_source_and_predictor()
+            if self.watch is not None:
+                self.watch.close()
             if self._status.state not in ("ended", "error"):
                 self._set_status("stopped", "stopped")
 
@@ -250,7 +278,8 @@ class LiveSensor:
         return self._status
 
     def stats(self) -> LiveStats:
-        return self._meter.snapshot()
+        """Rate and latency of sensing, with the source's camera truth."""
+        return self._meter.snapshot().with_camera(self.source)
 
     def _require_started(self) -> PressureModel:
         if self.model is None:
@@ -458,7 +487,10 @@ class LiveSensor:
     def _add(self, frame: Frame) -> None:
         """Buffer a frame in the predictor's window without running the model."""
         if self._accept_time(frame):
-            self.predictor.add_frame(self._convert(frame), frame.timestamp_s)
+            rgb = self._convert(frame)
+            self.predictor.add_frame(rgb, frame.timestamp_s)
+            if self.watch is not None:
+                self.watch.observe(rgb)
 
     def _process(self, frame: Frame) -> None:
         """Run the model on the window ending with ``frame``; publish the reading."""
@@ -469,12 +501,16 @@ class LiveSensor:
         if reading is None:
             self._set_status("warming_up", f"filling the {self.model.span}-frame window")
             return
+        health = None
+        if self.watch is not None:
+            reading, report = self.watch.process(rgb, reading)
+            health = report if self.settings.health else None
         latency = time.time() - frame.timestamp_s
         self._meter.add_reading(
             time.monotonic(), latency, reading.latency_s, reading.dropped_frames
         )
         self._set_status("ok", f"{self.source.name}")
-        update = LiveUpdate(reading, rgb, latency, frame.reference_force_n, frame.index)
+        update = LiveUpdate(reading, rgb, latency, frame.reference_force_n, frame.index, health)
         for listener in self._listeners:
             self._call(listener.push, update)
 
@@ -506,4 +542,6 @@ class LiveSensor:
                 )
             logger.info("live: %s reopened after %d attempt(s)", self.source.name, attempt)
             self.predictor.reset()
+            if self.watch is not None:
+                self.watch.reset()
             return first

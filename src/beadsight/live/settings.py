@@ -45,6 +45,10 @@ class LiveSettings:
     reconnect_initial_s: float = RECONNECT_INITIAL_S  # first wait before reopening a camera
     reconnect_max_s: float = RECONNECT_MAX_S  # longest wait; the wait doubles per attempt
     max_readings: int | None = None  # end sensing (state "ended") after this many readings
+    health: bool = True  # track drift health against a rest reference (live/health.py)
+    hold: bool = True  # hold the reading of a still load (live/hold.py; never erase it)
+    rest_file: str | None = None  # calibration rest reference .npz (None: taken automatically)
+    sim_drift: str | None = None  # the simulator's drift (sim/drift.py), e.g. "settle,bump"
 
     def __post_init__(self) -> None:
         if self.backend not in ("auto", *BACKENDS):
@@ -68,6 +72,12 @@ class LiveSettings:
             )
         if self.source_fps is not None:
             _positive("source_fps", self.source_fps)
+        if self.sim_drift is not None:
+            from beadsight.sim.drift import parse_drift
+
+            object.__setattr__(self, "sim_drift", parse_drift(self.sim_drift).describe())
+        if self.rest_file is not None:
+            object.__setattr__(self, "rest_file", str(self.rest_file))
         for name in ("max_readings", "threads"):
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or int(value) != value or value < 1):

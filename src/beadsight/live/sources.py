@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from beadsight.devices.base import Camera, Frame
+from beadsight.errors import BeadSightError
 
 logger = logging.getLogger(__name__)
 
@@ -53,6 +54,7 @@ def open_camera(
     loop: bool = False,
     seed: int = 0,
     any_size: bool = False,
+    drift: str | None = None,
 ) -> Camera:
     """A (not yet connected) camera for ``spec``: a Camera (used as it is), ``"sim"``, a
     camera index (int or a string of digits) or device path, or a video file path.
@@ -61,7 +63,8 @@ def open_camera(
     (default 30), or the rate asked of a camera (a video file plays at its own rate).
     loop: restart a video (or the simulator's session) at its end. seed: the
     simulator's. any_size: accept any camera resolution (when a custom preprocessing is
-    given) instead of requiring the reference camera's 1280x1024.
+    given) instead of requiring the reference camera's 1280x1024. drift: the simulator's
+    drift (:func:`beadsight.sim.drift.parse_drift` text); refused for other sources.
     """
     from beadsight.devices.opencv import OpenCVCamera, is_device_path
 
@@ -72,10 +75,13 @@ def open_camera(
                 f"Camera, got {type(spec).__name__}"
             )
         return spec
-    if isinstance(spec, str) and spec.strip().lower() == "sim":
+    is_sim = isinstance(spec, str) and spec.strip().lower() == "sim"
+    if drift is not None and not is_sim:
+        raise BeadSightError(f"--sim-drift: only the simulator drifts on purpose, not {spec!r}")
+    if is_sim:
         from beadsight.devices.virtual.camera import SimCamera
 
-        return SimCamera(image_size, fps=fps or DEFAULT_SIM_FPS, seed=seed, loop=loop)
+        return SimCamera(image_size, fps=fps or DEFAULT_SIM_FPS, seed=seed, loop=loop, drift=drift)
     text = os.fspath(spec) if isinstance(spec, os.PathLike) else spec
     if isinstance(text, int) or text.strip().isdigit() or is_device_path(text):
         # a camera: the reference mode (1280x1024 MJPG, fps or 30), any size if asked

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -38,6 +40,12 @@ class LiveStats:
     inference_p99_s: float
     skipped_frames: int
     dropped_frames: int
+    # camera truth, per source (beadsight.devices.truth; NaN/0 for sources that do not tell)
+    camera_dropped: int = 0  # frames the camera lost (capture-time gaps)
+    camera_duplicated: int = 0  # frames identical to the one before
+    camera_fps: float = math.nan  # the rate the camera delivers (last 2 s)
+    requested_fps: float = math.nan  # the rate asked of it
+    camera_slow: bool = False  # camera_fps below 90 % of requested_fps
 
     def summary(self) -> str:
         def ms(v: float) -> str:
@@ -48,7 +56,24 @@ class LiveStats:
             f"{ms(self.latency_p50_s)} ms p99 {ms(self.latency_p99_s)} ms, inference p50 "
             f"{ms(self.inference_p50_s)} ms p99 {ms(self.inference_p99_s)} ms, "
             f"{self.readings} readings, skipped {self.skipped_frames}, "
-            f"dropped {self.dropped_frames}"
+            f"dropped {self.dropped_frames}; camera {self.camera_fps:.1f} of "
+            f"{self.requested_fps:.3g} fps{' (SLOW)' if self.camera_slow else ''}, "
+            f"dropped {self.camera_dropped}, duplicated {self.camera_duplicated}"
+        )
+
+    def with_camera(self, camera: Any) -> LiveStats:
+        """These stats with a camera's truth (its ``stats``: a
+        :class:`~beadsight.devices.camera.CameraStats`); unchanged for sources without."""
+        cam = getattr(camera, "stats", None)
+        if not hasattr(cam, "duplicated"):
+            return self
+        return dataclasses.replace(
+            self,
+            camera_dropped=cam.dropped,
+            camera_duplicated=cam.duplicated,
+            camera_fps=cam.delivered_fps,
+            requested_fps=cam.requested_fps,
+            camera_slow=cam.slow,
         )
 
 

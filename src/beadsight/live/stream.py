@@ -39,6 +39,7 @@ from beadsight.config import SensorGeometry
 from beadsight.live.config import DEFAULT_HOST
 from beadsight.live.config import STREAM_MAX_AGE_S as DEFAULT_MAX_AGE_S
 from beadsight.live.config import STREAM_PORT as DEFAULT_PORT
+from beadsight.live.ros_messages import health_report
 
 logger = logging.getLogger(__name__)
 
@@ -72,6 +73,15 @@ def map_payload(update: Any) -> bytes:
     return np.ascontiguousarray(update.reading.pressure_kpa, dtype="<f4").tobytes()
 
 
+def _health(update: Any) -> dict[str, Any] | None:
+    """The reading's health: state, message, figures (None where it is not tracked)."""
+    health = getattr(update, "health", None)
+    if health is None:
+        return None
+    report = health_report(None, health, float(update.reading.timestamp_s))
+    return {k: report[k] for k in ("state", "message", "figures")}
+
+
 def reading_header(update: Any, seq: int, skipped: int = 0) -> bytes:
     """The header line of a ``reading`` message (its payload is :func:`map_payload`)."""
     r = update.reading
@@ -91,6 +101,7 @@ def reading_header(update: Any, seq: int, skipped: int = 0) -> bytes:
         "inference_s": float(r.latency_s),
         "dropped_frames": int(r.dropped_frames),
         "reference_force_n": _finite_or_none(update.reference_force_n),
+        "health": _health(update),
         "height": int(h),
         "width": int(w),
         "dtype": "<f4",

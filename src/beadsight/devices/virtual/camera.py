@@ -15,8 +15,12 @@ camera that refuses a mode.
 
 Faults (thread-safe): :meth:`VirtualCamera.unplug` (capture stops; reads raise
 CameraDisconnectedError once the queue is empty; :meth:`~BufferedCamera.connect` plugs
-it back in) and :meth:`VirtualCamera.stall` (no frames for a while; the reader counts
-the gap as dropped frames).
+it back in), :meth:`VirtualCamera.stall` (no frames for a while; the reader counts
+the gap as dropped frames), :meth:`VirtualCamera.drop` (lose the next frames, like a
+USB bus that lost them), :meth:`VirtualCamera.duplicate` (hand out the previous image
+again instead of the next frames, like a driver re-reading its last buffer) and
+:meth:`VirtualCamera.deliver_at` (run slower than the fps it claims, like OpenCV's V4L2
+backend on some cameras).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import dataclasses
 import logging
 import math
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -79,6 +83,9 @@ class VirtualCamera(BufferedCamera):
         self._lock = threading.Lock()
         self._unplugged = False
         self._stall_s = 0.0
+        self._duplicates = 0  # the next this many frames repeat the previous image
+        self._last_image: np.ndarray | None = None
+        self._deliver_fps: float | None = None  # the rate really delivered (None: fps)
 
     # --- faults -------------------------------------------------------------------------
     def unplug(self) -> None:
@@ -94,6 +101,23 @@ class VirtualCamera(BufferedCamera):
         with self._lock:
             self._stall_s += float(seconds)
 
+    def drop(self, frames: int) -> None:
+        """Lose the next ``frames`` frames (their time passes without a capture)."""
+        self.stall(frames / self.requested_fps)
+
+    def duplicate(self, frames: int) -> None:
+        """Deliver the previous image again as the next ``frames`` frames."""
+        with self._lock:
+            self._duplicates += int(frames)
+
+    def deliver_at(self, fps: float | None) -> None:
+        """Deliver ``fps`` frames per second while claiming :attr:`requested_fps` (None:
+        deliver what is claimed)."""
+        if fps is not None and not 0 < fps:
+            raise ValueError(f"{self.name}: deliver_at fps must be > 0, got {fps}")
+        with self._lock:
+            self._deliver_fps = fps
+
     # --- BufferedCamera hooks -----------------------------------------------------------
     def _open(self) -> float:
         with self._lock:
@@ -104,13 +128,21 @@ class VirtualCamera(BufferedCamera):
     def _pace_delay_s(self) -> float:
         with self._lock:
             stall, self._stall_s = self._stall_s, 0.0
+            if self._deliver_fps is not None:  # each frame comes this much later
+                stall += max(1.0 / self._deliver_fps - 1.0 / self.requested_fps, 0.0)
         return stall
 
     def _grab(self) -> Captured | None:
         with self._lock:
             if self._unplugged:
                 return self._end("stopped delivering frames (unplugged)")
-        return self._next_frame()
+            if self._duplicates > 0 and self._last_image is not None:
+                self._duplicates -= 1
+                return self._last_image.copy(), math.nan
+        captured = self._next_frame()
+        if captured is not None:
+            self._last_image = captured[0]
+        return captured
 
     def _next_frame(self) -> Captured | None:
         return self.render_fn(), math.nan
@@ -173,8 +205,11 @@ class SimCamera(PlaybackCamera):
 
     Frames are (S, S, 3) uint8 RGB at ``image_size`` px, paced at ``fps`` (default: the
     simulator's, 30); each carries the simulator's true normal force as
-    ``reference_force_n``. presses: None for an endless session of random presses, or
-    that many presses, after which the camera ends (``loop`` plays them again).
+    ``reference_force_n``. presses: None for an endless session of random presses, that
+    many presses, or a sequence of :class:`~beadsight.sim.press.Press` (a scripted
+    session), after which the camera ends (``loop`` plays them again). drift: a
+    :class:`~beadsight.sim.drift.DriftSpec` (or its ``--sim-drift`` text) applied to the
+    frames, timed from the session's first frame.
     """
 
     def __init__(
@@ -184,21 +219,28 @@ class SimCamera(PlaybackCamera):
         seed: int = 0,
         config: Any = None,
         *,
-        presses: int | None = None,
+        presses: int | Sequence[Any] | None = None,
+        drift: Any = None,
         **options: Any,
     ):
         from beadsight.sim.config import SimConfig
+        from beadsight.sim.drift import parse_drift
 
         base = config if config is not None else SimConfig()
         fps = float(fps or base.fps or DEFAULT_FPS)
         self.config = dataclasses.replace(base, image_size_px=image_size, fps=fps)
         self.seed = seed
         self.presses = presses
+        self.drift = parse_drift(drift)
         options.setdefault("name", f"sim (seed {seed})")
         super().__init__(self._session, fps, channel_order="RGB", **options)
 
     def _session(self) -> Iterator[tuple[np.ndarray, float]]:
+        from beadsight.sim.drift import DriftRenderer
         from beadsight.sim.session import SimulatedSession
 
+        drift = DriftRenderer(self.drift, self.config.image_size_px, self.config.sensor_size_mm)
+        start_s = None
         for record in SimulatedSession(self.config, self.seed, self.presses):
-            yield record.frame_rgb, record.true_force_n
+            start_s = record.timestamp_s if start_s is None else start_s
+            yield drift.apply(record.frame_rgb, record.timestamp_s - start_s), record.true_force_n

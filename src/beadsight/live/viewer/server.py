@@ -53,6 +53,7 @@ from beadsight.live.config import VIEWER_MAX_FPS as DEFAULT_MAX_FPS
 from beadsight.live.config import VIEWER_MAX_KPA as DEFAULT_MAX_KPA
 from beadsight.live.config import VIEWER_PORT as DEFAULT_PORT
 from beadsight.live.recorder import unique_recording_path
+from beadsight.live.ros_messages import health_report
 from beadsight.live.viewer.events import (
     KEEPALIVE_S,
     MAX_EVENT_CLIENTS,
@@ -288,7 +289,10 @@ class ViewerServer:
             "recording": None if rec is None else {"path": str(rec[0]), "readings": rec[1]},
             "record_error": self.sensor.recording_error,
             "reading": None,
+            "health": None,
         }
+        if update is not None and update.health is not None:
+            state["health"] = health_report(status, update.health, time.time())
         if update is not None:
             r = update.reading
             cop = [float(v) for v in np.asarray(r.cop_mm).reshape(2)]

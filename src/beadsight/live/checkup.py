@@ -1,0 +1,82 @@
+"""``beadsight health``: watch the sensor at rest for a while and say how it is.
+
+:func:`run_checkup` runs a :class:`~beadsight.live.sensor.LiveSensor` for ``seconds``
+(the pouch should be unloaded), then returns the newest
+:class:`~beadsight.live.health.HealthReport` and, if asked, saves the rest reference
+the sensor took (or was given) for later runs (``beadsight live --rest FILE``).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from beadsight.errors import BeadSightError
+from beadsight.files import refuse_existing
+
+POLL_S = 0.1  # how often the checkup looks at the sensor
+
+
+def run_checkup(
+    sensor: Any,
+    seconds: float,
+    *,
+    save_rest: str | Path | None = None,
+    overwrite: bool = False,
+) -> Any:
+    """Run ``sensor`` (a LiveSensor with health on, not started) ``seconds`` of host time;
+    returns its health report. save_rest: write the rest reference there (.npz)."""
+    if not seconds > 0:
+        raise BeadSightError(f"--seconds must be > 0, got {seconds!r}")
+    if save_rest is not None:
+        refuse_existing(save_rest, overwrite)
+    with sensor:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline and not sensor.wait(POLL_S):
+            pass
+        if sensor.error is not None:
+            raise sensor.error
+        report = sensor.watch.monitor.flush()
+        reference = sensor.watch.monitor.reference
+    if save_rest is not None:
+        if reference is None:
+            raise BeadSightError(
+                f"--save-rest {save_rest}: no rest reference yet (the pouch was not "
+                f"unloaded and still for long enough in {seconds:g} s)"
+            )
+        reference.save(save_rest)
+    return report
+
+
+def drift_timeline(
+    drift: str | None, seconds: float, *, image_size: int = 64, seed: int = 0
+) -> dict[str, float]:
+    """Simulated time (s) at which each health state first shows while the simulated pouch
+    rests (finger above it: the true force, and so the reading, is 0 N) under ``drift``
+    (:func:`beadsight.sim.drift.parse_drift` text); frames at ``image_size`` px, 30 fps."""
+    import dataclasses
+
+    import numpy as np
+
+    from beadsight.inference.predictor import PressureReading
+    from beadsight.live.watch import SensorWatch
+    from beadsight.sim.config import SimConfig
+    from beadsight.sim.drift import DriftRenderer, parse_drift
+    from beadsight.sim.press import Press
+    from beadsight.sim.session import SimulatedSession
+
+    cfg = dataclasses.replace(SimConfig(image_size_px=image_size), dwell_s=float(seconds))
+    render = DriftRenderer(parse_drift(drift), image_size, cfg.sensor_size_mm)
+    watch = SensorWatch(cfg.sensor_size_mm)
+    empty = np.zeros((image_size, image_size), np.float32)
+    first: dict[str, float] = {}
+    for record in SimulatedSession(cfg, seed, [Press(0.0, 0.0, cfg.clear_z_mm)]):
+        t = record.frame_index / cfg.fps
+        if t > seconds:
+            break
+        zero = PressureReading(empty, 0.0, np.full(2, np.nan), False, empty > 0, 0.0, t, 0, 0, 0)
+        _, report = watch.process(render.apply(record.frame_rgb, t), zero)
+        first.setdefault(report.state, t)
+    watch.close()
+    return first
