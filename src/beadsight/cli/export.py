@@ -39,6 +39,17 @@ def _bench_arguments(bench: argparse.ArgumentParser) -> None:
         "--rate", type=float, default=None, help="camera rate of the sustained run, Hz (0: skip it)"
     )
     live.add_argument("--seed", type=int, default=None, help="seed of the simulated frames")
+    live.add_argument(
+        "--source",
+        default=None,
+        help="instead: run the live loop on this source (camera index, video file, sim) "
+        "and report its rate, camera-to-reading latency and camera truth (delivered fps, "
+        "dropped and duplicated frames)",
+    )
+    live.add_argument(
+        "--duration", type=float, default=10.0, help="with --source: seconds to run (default 10)"
+    )
+    live.add_argument("--fps", type=float, default=None, help="with --source: the rate to ask")
     live.add_argument("--json", action="store_true", help="print one JSON object")
     live.set_defaults(func=_bench_live)
 
@@ -93,6 +104,8 @@ def _bench_live(args: argparse.Namespace) -> int:
     from beadsight.cli.options import given
     from beadsight.live.bench import bench_live
 
+    if args.source is not None:
+        return _bench_source(args)
     model = load_checkpoint(args.checkpoint) if args.checkpoint else None
     options = given(frames=args.frames, rate_hz=args.rate, seed=args.seed)
     if options.get("rate_hz") == 0:
@@ -106,4 +119,23 @@ def _bench_live(args: argparse.Namespace) -> int:
         **options,
     )
     print(json.dumps(result.to_dict()) if args.json else result.summary())
+    return 0
+
+
+def _bench_source(args: argparse.Namespace) -> int:
+    from beadsight.cli.options import given
+    from beadsight.inference.machine import cpu_summary
+    from beadsight.live.bench import bench_source, stats_json
+    from beadsight.live.settings import LiveSettings
+
+    settings = LiveSettings(
+        source_fps=args.fps,
+        **given(backend=args.backend, precision=args.precision, seed=args.seed),
+    )
+    stats = bench_source(args.checkpoint, args.source, args.duration, settings)
+    if args.json:
+        print(json.dumps(stats_json(stats, source=args.source, duration_s=args.duration)))
+    else:
+        print(cpu_summary())
+        print(f"source {args.source}, {args.duration:g} s: {stats.summary()}")
     return 0

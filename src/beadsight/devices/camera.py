@@ -390,9 +390,9 @@ class BufferedCamera(DeviceContext):
 
     def _push(self, image: np.ndarray, force_n: float, t_unix: float, t_mono: float) -> None:
         with self._cond:
+            self._truth.add(image, t_mono)  # a file's repeated frames are a camera's too
             if self.live:
                 self._count_gap(t_mono)
-                self._truth.add(image, t_mono)
             else:
                 while len(self._queue) >= self._queue_frames and not self._stop.is_set():
                     self._cond.wait(QUEUE_FULL_POLL_S)

@@ -320,3 +320,31 @@ def bench_live(
         )
     finally:
         predictor.close()
+
+
+def bench_source(
+    checkpoint: Any,
+    source: Any,
+    duration_s: float = 10.0,
+    settings: Any = None,
+) -> Any:
+    """Run the live loop on ``source`` (camera index or path, video file, ``"sim"``) for
+    ``duration_s`` and return its :class:`~beadsight.live.stats.LiveStats`: readings/s,
+    camera-to-reading latency, and the camera's truth (delivered fps against the rate
+    asked, dropped and duplicated frames, ``camera_slow``)."""
+    from beadsight.live.sensor import LiveSensor
+
+    if not duration_s > 0:
+        raise ConfigError(f"duration must be > 0 s, got {duration_s!r}")
+    with LiveSensor(checkpoint, source, settings=settings) as sensor:
+        sensor.wait(duration_s)
+        stats = sensor.stats()
+        error = sensor.error
+    if error is not None:
+        raise error
+    return stats
+
+
+def stats_json(stats: Any, **extra: Any) -> dict[str, Any]:
+    """A LiveStats as a JSON-safe dict (NaN -> None), with ``extra`` keys first."""
+    return {**extra, **_json_safe(asdict(stats))}
