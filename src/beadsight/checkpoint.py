@@ -488,13 +488,14 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return PressureModel(module, meta, source=str(path)).to(map_location)
 
 
-def shipped_model_path(name: str = SHIPPED_MODEL) -> Path:
-    """Path of a model shipped with the package (``SHIPPED_MODEL``, the simulated sensor's,
-    or ``BASE_MODEL``, the any-pouch base); :class:`CheckpointError` if this install lacks it."""
+def shipped_model_path(name: str | None = None) -> Path:
+    """Path of a model shipped with the package (default ``SHIPPED_MODEL``, the simulated
+    sensor's; ``BASE_MODEL``: the any-pouch base); :class:`CheckpointError` if absent."""
+    name = name or SHIPPED_MODEL
     path = Path(str(importlib.resources.files("beadsight").joinpath("assets", name)))
     if not path.is_file():
         raise CheckpointError(
-            f"the shipped model {path} is missing from this install; pass a checkpoint PATH "
+            f"the shipped model {path} is missing from this install; pass --checkpoint PATH "
             "(a model trained with `beadsight train`, or `beadsight demo --train`)"
         )
     return path

@@ -269,3 +269,76 @@ class Recorder:
                 "%s: %d readings were dropped (disk too slow)", self.path, self.queue.dropped
             )
         return self.path
+
+
+class RecordingSlot:
+    """The one recording a live sensor may have at a time, and why the last one stopped.
+
+    add_listener / remove_listener: the sensor's, so the recorder receives readings.
+    Thread-safe; a write failure (disk full) ends the recording, not sensing.
+    """
+
+    def __init__(
+        self,
+        add_listener: Callable[[Any], Any],
+        remove_listener: Callable[[Any], None],
+    ):
+        self._add, self._remove = add_listener, remove_listener
+        self._lock = threading.Lock()
+        self._recorder: Recorder | None = None
+        self._failed: Recorder | None = None  # stopped by an error not yet raised
+
+    def start(
+        self,
+        path: str | Path,
+        geometry: Any,
+        provenance: dict[str, Any],
+        overwrite: bool,
+        on_error: Callable[[BaseException], None] | None,
+    ) -> Path:
+        with self._lock:
+            if self._recorder is not None:
+                raise BeadSightError(f"already recording to {self._recorder.path}")
+            self._failed = None  # its error was reported (error, on_error)
+            writer = open_recording_writer(path, geometry, provenance, overwrite)
+            recorder = Recorder(writer, lambda e: self._failed_with(recorder, e, on_error))
+            self._recorder = recorder
+        self._add(recorder)
+        logger.info("recording to %s", path)
+        return Path(path)
+
+    def _failed_with(
+        self, recorder: Recorder, error: BaseException, on_error: Callable | None
+    ) -> None:
+        self._remove(recorder)
+        with self._lock:
+            if self._recorder is recorder:
+                self._recorder, self._failed = None, recorder
+        if on_error is not None:
+            on_error(error)
+
+    def stop(self) -> Path | None:
+        """Finish the current recording; its path (None if none). Raises the error that
+        stopped it (disk full, ...), if one did."""
+        with self._lock:
+            recorder = self._recorder or self._failed
+            self._failed = None
+        if recorder is None:
+            return None
+        self._remove(recorder)
+        try:
+            return recorder.close()  # `current` reports it until the file is complete
+        finally:
+            with self._lock:
+                if self._recorder is recorder:
+                    self._recorder = None
+
+    @property
+    def current(self) -> tuple[Path, int] | None:
+        recorder = self._recorder
+        return None if recorder is None else (recorder.path, recorder.count)
+
+    @property
+    def error(self) -> str | None:
+        failed = self._failed
+        return None if failed is None else str(failed.error)

@@ -66,7 +66,7 @@ from beadsight.live.listeners import (
     LiveUpdate,
     UpdateQueue,
 )
-from beadsight.live.recorder import RECORDER_QUEUE_SIZE, Recorder, open_recording_writer
+from beadsight.live.recorder import RECORDER_QUEUE_SIZE, RecordingSlot, open_recording_writer
 from beadsight.live.rest import load_rest
 from beadsight.live.settings import (
     FIRST_FRAME_TIMEOUT_S,
@@ -85,24 +85,14 @@ from beadsight.live.watch import SensorWatch
 
 logger = logging.getLogger(__name__)
 
+# fmt: off
 __all__ = [  # what this module held before it was split (beadsight.live.sensor.X keeps working)
-    "FIRST_FRAME_TIMEOUT_S",
-    "NO_SIGNAL_AFTER_S",
-    "READING_QUEUE_SIZE",
-    "RECONNECT_INITIAL_S",
-    "RECONNECT_MAX_S",
-    "RECORDER_QUEUE_SIZE",
-    "STATES",
-    "STATS_WINDOW_S",
-    "LiveListener",
-    "LiveSensor",
-    "LiveSettings",
-    "LiveStats",
-    "LiveStatus",
-    "LiveUpdate",
-    "UpdateQueue",
-    "open_recording_writer",
+    "FIRST_FRAME_TIMEOUT_S", "NO_SIGNAL_AFTER_S", "READING_QUEUE_SIZE",
+    "RECONNECT_INITIAL_S", "RECONNECT_MAX_S", "RECORDER_QUEUE_SIZE", "STATES",
+    "STATS_WINDOW_S", "LiveListener", "LiveSensor", "LiveSettings", "LiveStats",
+    "LiveStatus", "LiveUpdate", "UpdateQueue", "open_recording_writer",
 ]
+# fmt: on
 
 
 # --- the sensor ------------------------------------------------------------------------
@@ -152,8 +142,7 @@ class LiveSensor:
         self._thread: threading.Thread | None = None
         self._first: Frame | None = None
         self._error: BaseException | None = None
-        self._recorder: Recorder | None = None
-        self._failed_recorder: Recorder | None = None  # stopped by an error not yet raised
+        self._recording = RecordingSlot(self.add_listener, self.remove_listener)
         self._meter = RateMeter(stale_after_s=settings.no_signal_after_s)
         self._status = LiveStatus("starting", "not started", time.time())
         self._last_timestamp = -math.inf
@@ -194,21 +183,9 @@ class LiveSensor:
             self._close_source_and_predictor()
             raise
         self.model, self._first = model, first
-        self.watch = self._make_watch(model, reference)
+        self.watch = SensorWatch.for_live(settings, model.geometry.sensor_size_mm, reference)
         logger.info("live: %s, source %s", self.predictor, self.source.name)
         return self
-
-    def _make_watch(self, model: PressureModel, reference: Any) -> SensorWatch | None:
-        """Stillness, the steady-load hold and health (None: neither health nor hold)."""
-        settings = self.settings
-        if not (settings.health or settings.hold):
-            return None
-        return SensorWatch(
-            model.geometry.sensor_size_mm,
-            hold=settings.hold,
-            reference=reference,
-            background=True,
-        )
 
     @property
     def health(self) -> HealthReport | None:
@@ -354,56 +331,24 @@ class LiveSensor:
         :attr:`recording_error` tells, and :meth:`stop_recording` raises the error.
         """
         model = self._require_started()
-        with self._lock:
-            if self._recorder is not None:
-                raise BeadSightError(f"already recording to {self._recorder.path}")
-            self._failed_recorder = None  # its error was reported (recording_error, on_error)
-            writer = open_recording_writer(path, model.geometry, self._provenance(), overwrite)
-            recorder = Recorder(writer, lambda e: self._recording_failed(recorder, e, on_error))
-            self._recorder = recorder
-        self.add_listener(recorder)
-        logger.info("recording to %s", path)
-        return Path(path)
-
-    def _recording_failed(
-        self, recorder: Recorder, error: BaseException, on_error: Callable | None
-    ) -> None:
-        self.remove_listener(recorder)
-        with self._lock:
-            if self._recorder is recorder:
-                self._recorder, self._failed_recorder = None, recorder
-        if on_error is not None:
-            on_error(error)
+        return self._recording.start(path, model.geometry, self._provenance(), overwrite, on_error)
 
     def stop_recording(self) -> Path | None:
         """Finish the current recording; returns its path (None if not recording).
 
         Raises the error that stopped the recording (disk full, ...), if one did.
         """
-        with self._lock:
-            recorder = self._recorder or self._failed_recorder
-            self._failed_recorder = None
-        if recorder is None:
-            return None
-        self.remove_listener(recorder)
-        try:
-            return recorder.close()  # `recording` reports it until the file is complete
-        finally:
-            with self._lock:
-                if self._recorder is recorder:
-                    self._recorder = None
+        return self._recording.stop()
 
     @property
     def recording(self) -> tuple[Path, int] | None:
         """(path, readings written so far) of the current recording, or None."""
-        recorder = self._recorder
-        return None if recorder is None else (recorder.path, recorder.count)
+        return self._recording.current
 
     @property
     def recording_error(self) -> str | None:
         """Why the last recording stopped by itself (disk full, ...), until the next start."""
-        failed = self._failed_recorder
-        return None if failed is None else str(failed.error)
+        return self._recording.error
 
     def _provenance(self) -> dict[str, Any]:
         return {

@@ -11,6 +11,8 @@ reference only from rest frames whose force is also about zero. Per frame this c
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from beadsight.inference.predictor import PressureReading
@@ -42,6 +44,14 @@ class SensorWatch:
         self.monitor = HealthMonitor(sensor_size_mm, settings, reference, background)
         self.still = False
         self.rest = False
+
+    @classmethod
+    def for_live(cls, settings: Any, sensor_size_mm: float, reference: Any) -> SensorWatch | None:
+        """The watch a live sensor with these :class:`LiveSettings` runs, on a worker
+        thread (None: neither health nor hold is on)."""
+        if not (settings.health or settings.hold):
+            return None
+        return cls(sensor_size_mm, hold=settings.hold, reference=reference, background=True)
 
     def observe(self, frame_rgb: np.ndarray) -> bool:
         """A frame that entered the window without a reading of its own; True if still."""

@@ -128,16 +128,7 @@ def simulate_dataset(
     :func:`simulate_sharded`); the same seed and workers give the same dataset.
     """
     out = Path(out)
-    if isinstance(presses, bool) or int(presses) != presses or presses < 1:
-        raise SimulationError(f"presses must be a positive integer, got {presses!r}")
-    if out.exists() and not overwrite:
-        raise SimulationError(f"{out}: already exists; choose another --out or remove it")
-    if isinstance(pouches, bool) or int(pouches) != pouches or not 1 <= pouches <= presses:
-        raise SimulationError(f"pouches must be an integer in [1, presses], got {pouches!r}")
-    if compression not in (None, "gzip", "lzf"):
-        raise SimulationError(f"compression must be None, 'gzip' or 'lzf', got {compression!r}")
-    if isinstance(workers, bool) or int(workers) != workers or workers < 1:
-        raise SimulationError(f"workers must be a positive integer, got {workers!r}")
+    _check_arguments(out, presses, pouches, compression, variety, workers, overwrite)
     cfg = sim_config_for(n_beads, image_size, fps, config)
     if workers > 1 and pouches > 1:
         return simulate_sharded(
@@ -152,8 +143,6 @@ def simulate_dataset(
             progress=progress,
         )
     per_pouch = math.ceil(presses / pouches) if pouches > 1 else None
-    if variety is not None and variety not in SPLITS:
-        raise SimulationError(f"variety must be None or one of {SPLITS}, got {variety!r}")
     session = SimulatedSession(
         cfg, seed, int(presses), presses_per_pouch=per_pouch, variety=variety
     )
@@ -180,6 +169,24 @@ def simulate_dataset(
     ) as writer:
         _record(session, writer, total, progress)
     return out
+
+
+def _check_arguments(out, presses, pouches, compression, variety, workers, overwrite) -> None:
+    def positive_int(value) -> bool:
+        return not isinstance(value, bool) and int(value) == value and value >= 1
+
+    if not positive_int(presses):
+        raise SimulationError(f"presses must be a positive integer, got {presses!r}")
+    if out.exists() and not overwrite:
+        raise SimulationError(f"{out}: already exists; choose another --out or remove it")
+    if not positive_int(pouches) or pouches > presses:
+        raise SimulationError(f"pouches must be an integer in [1, presses], got {pouches!r}")
+    if compression not in (None, "gzip", "lzf"):
+        raise SimulationError(f"compression must be None, 'gzip' or 'lzf', got {compression!r}")
+    if variety is not None and variety not in SPLITS:
+        raise SimulationError(f"variety must be None or one of {SPLITS}, got {variety!r}")
+    if not positive_int(workers):
+        raise SimulationError(f"workers must be a positive integer, got {workers!r}")
 
 
 def variety_provenance(session: SimulatedSession, pouches: int) -> dict:
