@@ -82,6 +82,12 @@ def _check_live_page(page, tmp_path: Path) -> None:
     rate = float(page.locator("#rate").inner_text())
     assert 10 < rate < 60, rate
     assert float(page.locator("#latency-p50").inner_text()) > 0
+    # the health chip shows a state from the sensor (no rest reference yet: unknown, or
+    # ok once still rest frames were seen), with its message as the tooltip
+    chip = page.locator("#health")
+    assert chip.is_visible()
+    assert page.locator("#health-state").inner_text() in ("unknown", "ok", "drifting")
+    assert chip.get_attribute("title")
     # the images were drawn: the map canvas and the camera canvas are not blank
     for canvas in ("map", "frame", "colorbar", "trace"):
         lit = page.evaluate(
