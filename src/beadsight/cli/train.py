@@ -11,6 +11,16 @@ import os
 TRAIN_FLAGS = (
     ("steps", "optimizer steps in total (default: --epochs passes)", {"type": int}),
     ("epochs", "passes over the training windows"),
+    (
+        "budget_min",
+        "wall-clock budget in minutes: stop then (or at --steps/--epochs, whichever is first)",
+        {"type": float, "metavar": "M"},
+    ),
+    ("val_every_min", "also validate this often, minutes (default: every epoch)", {"type": float}),
+    ("presses", "train on only this many presses of the dataset", {"type": int}),
+    ("skip_presses", "drop the dataset's first presses (a new pouch's break-in)"),
+    ("train_layers", "all, or decoder (the encoder stays as initialised)"),
+    ("augment", "no dihedral augmentation"),
     ("batch_size", "windows per step over all processes"),
     ("lr", "AdamW learning rate"),
     ("lr_schedule", "constant, or cosine: decay from --lr to --lr-min over the run's steps"),
@@ -55,7 +65,13 @@ def register(commands) -> None:
 
 def _arguments(p: argparse.ArgumentParser) -> None:
     from beadsight.cli.options import add_fields
-    from beadsight.train.config import LOADER_MODES, LR_SCHEDULES, PRECISIONS, TrainConfig
+    from beadsight.train.config import (
+        LOADER_MODES,
+        LR_SCHEDULES,
+        PRECISIONS,
+        TRAIN_LAYERS,
+        TrainConfig,
+    )
 
     p.add_argument("--data", default=None, help="dataset .h5 (ours or a reference HDF5 file)")
     p.add_argument("--out", default=None, help="run folder to create (or to resume)")
@@ -71,7 +87,12 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="continue the run in --out from its last.pt (same split, optimizer, step)",
     )
-    choices = {"lr_schedule": LR_SCHEDULES, "precision": PRECISIONS, "loader": LOADER_MODES}
+    choices = {
+        "lr_schedule": LR_SCHEDULES,
+        "precision": PRECISIONS,
+        "loader": LOADER_MODES,
+        "train_layers": TRAIN_LAYERS,
+    }
     rows = [
         (name, help, {**(extra[0] if extra else {}), **_choices(choices, name)})
         for name, help, *extra in TRAIN_FLAGS
