@@ -197,7 +197,7 @@ class PressPlan(_Serializable):
 def low_discrepancy(n: int, seed: int) -> np.ndarray:
     """(n, 3) points in [0, 1)^3: x, y (the R2 sequence) and depth (golden ratio) of n presses.
 
-    Any n of them, and every first part, spread evenly over the cube, without the clusters
+    Any n of them, and every first part, spread evenly, without the clusters
     and gaps of uniform random points: from its start at 0.5, every n >= 4 has a point in
     each quadrant of the pad, every n >= 8 one in each quarter of the depth range (checked
     up to 300 in tests/rig). The seed picks one of 16 symmetric layouts (a rotation or

@@ -97,7 +97,7 @@ def train_config(config: CalibrateConfig, base: PressureModel, base_path: Path) 
         noise_std=config.noise_std, augment=config.augment, split=CALIBRATION_SPLIT,
         seed=config.seed, presses=config.presses, skip_presses=config.skip,
         train_layers="decoder" if config.layers == "decoder" else "all",
-        device=config.device, progress=config.progress, log_every_steps=10,
+        device=config.device, progress=config.progress, log_every_steps=10, val_at_start=True,
         checkpoint_every_min=1e6,
     )  # fmt: skip
 

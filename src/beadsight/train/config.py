@@ -110,6 +110,7 @@ class TrainConfig(_Serializable):
     checkpoint_every_min: float = 10.0  # ... and at least this often (minutes)
     val_stride: int = 1  # validate on every val_stride-th window (1: all)
     val_every_min: float | None = None  # also validate (best.pt) this often; None: per epoch
+    val_at_start: bool = False  # validate the initial weights too (best.pt may be them)
     presses: int | None = None  # use only this many presses of the dataset (None: all)
     skip_presses: int = 0  # ... after dropping its first ones (a new pouch's break-in)
     train_layers: str = "all"  # all | decoder (the encoder stays as initialised)

@@ -435,6 +435,8 @@ class Trainer:
             logger.info("run %s already reached step %d of %d", self.run.path, self.step, total)
             return
         bar = clock.bar(self.step, total, disable=not (config.progress and self.dist.is_main))
+        if config.val_at_start and self.step == 0:
+            self._end_of_epoch()  # the initial weights are a candidate for best.pt
         try:
             while self.step < total and not self._out_of_time():
                 epoch, skip = divmod(self.step, spe)
