@@ -7,8 +7,10 @@ The stages, within one wall-clock budget (``CalibrateConfig.budget_min``):
    train / early-stopping / test (:data:`CALIBRATION_SPLIT`, seeded);
 2. score the base model as it comes (zero-shot) on the test presses;
 3. zero-press alignment (:func:`beadsight.train.align.align_to_rest`), scored again;
-4. fine-tune (``layers`` all or decoder) with the trainer under the budget left,
-   validating on the early-stopping presses and keeping the best checkpoint;
+4. fine-tune (``layers`` all or decoder) with the trainer under the budget left, from
+   the base or the aligned model (the lower MAE on the early-stopping presses),
+   validating on the early-stopping presses and keeping the best checkpoint (the
+   starting weights included);
 5. optionally a force gain (:func:`beadsight.train.align.fit_force_gain`);
 6. ``model.pt``, the evaluation of it on the test presses (every frame with a full
    window of real history, across press boundaries), ``metrics.json`` with all three
@@ -45,6 +47,7 @@ from beadsight.train.calibrate_config import (
 )
 from beadsight.train.config import SIZE_MULTIPLE, TrainConfig
 from beadsight.train.prepare import split_used_presses
+from beadsight.train.run import BEST_CHECKPOINT
 from beadsight.train.windows import dataset_fingerprint
 
 logger = logging.getLogger(__name__)
@@ -171,22 +174,11 @@ def calibrate(config: CalibrateConfig) -> dict:
     stages["aligned"] = stage(score(aligned, config, split, plots=False))
     model, trained = aligned, None
     if config.layers != "none":
+        start_path = fine_tune_start(base, base_path, aligned, out, config, split, align_record)
         left = config.budget_min * SECONDS_PER_MIN - (time.monotonic() - t0)
         left -= FINAL_RESERVE * t_eval + REPORT_RESERVE_S
-        if left < MIN_TRAIN_S:
-            logger.warning(
-                "the budget leaves %.0f s to fine-tune: fine-tuning %.0f s", left, MIN_TRAIN_S
-            )
-        tc = dataclasses.replace(
-            tc,
-            init=str(out / ALIGNED_FILE),
-            budget_min=max(left, MIN_TRAIN_S) / SECONDS_PER_MIN,
-            val_stride=data["val_stride"],
-        )
-        from beadsight.train.trainer import train
-
-        train(tc)
-        model = load_checkpoint(out / TRAIN_FOLDER / "best.pt")
+        tc = dataclasses.replace(tc, init=str(start_path), val_stride=data["val_stride"])
+        model = fine_tune(tc, left)
         trained = model.meta.training
     gain = fit_force_gain(model, config.data, split["train"]) if config.gain else 1.0
     record = {
@@ -204,6 +196,43 @@ def calibrate(config: CalibrateConfig) -> dict:
     final = score(out / MODEL_FILE, config, split, out_dir=out, report=False)
     record["seconds"] = round(time.monotonic() - t0, 1)
     return write_outputs(out, final, stages, record)
+
+
+def fine_tune_start(
+    base: PressureModel,
+    base_path: Path,
+    aligned: PressureModel,
+    out: Path,
+    config: CalibrateConfig,
+    split: dict,
+    record: dict,
+) -> Path:
+    """The checkpoint fine-tuning starts from: the base model or the aligned one, whichever
+    has the lower MAE on the early-stopping presses (the alignment can hurt: a dark colour
+    channel's noise is amplified by its small std). Noted in ``record``."""
+    maes = {}
+    for name, model in (("base", base), ("aligned", aligned)):
+        metrics = evaluate(
+            model, config.data, presses=split["val"], resize=True, device=config.device,
+            progress=False, plots=False, max_frames=VAL_MAX_WINDOWS,
+        )  # fmt: skip
+        maes[name] = metrics["mae_kpa"]
+    chosen = "aligned" if maes["aligned"] <= maes["base"] else "base"
+    record.update(val_mae_kpa=maes, fine_tune_from=chosen)
+    logger.info("fine-tuning starts from the %s model (early-stopping MAE %s)", chosen, maes)
+    return out / ALIGNED_FILE if chosen == "aligned" else base_path
+
+
+def fine_tune(tc: TrainConfig, left_s: float) -> PressureModel:
+    """Train as ``tc`` says for ``left_s`` seconds (at least MIN_TRAIN_S); the best checkpoint."""
+    if left_s < MIN_TRAIN_S:
+        logger.warning(
+            "the budget leaves %.0f s to fine-tune: fine-tuning %.0f s", left_s, MIN_TRAIN_S
+        )
+    from beadsight.train.trainer import train
+
+    train(dataclasses.replace(tc, budget_min=max(left_s, MIN_TRAIN_S) / SECONDS_PER_MIN))
+    return load_checkpoint(Path(tc.out) / BEST_CHECKPOINT)
 
 
 def _fine_tuning(training: dict | None, tc: TrainConfig) -> dict | None:

@@ -98,7 +98,9 @@ def calibration_report(metrics: dict, record: dict, files: dict) -> Report:
     config = record["config"]
     tuning = record["fine_tuning"]
     how = (
-        f"fine-tuned ({config['layers']} layers, lr {config['lr']:g} cosine, "
+        f"fine-tuned from the {record['alignment'].get('fine_tune_from', 'aligned')} model "
+        f"(the lower MAE on the early-stopping presses; {config['layers']} layers, "
+        f"lr {config['lr']:g} cosine, "
         f"{tuning['steps']} steps in {tuning['budget_min']:.1f} min) on {len(presses['train'])} "
         f"presses, keeping the checkpoint of lowest loss on {len(presses['val'])} "
         "early-stopping presses"
