@@ -133,6 +133,7 @@ def test_bad_inputs_get_clear_errors(make_dataset, base, tmp_path, capsys):
         run(six, rest=str(_rest_file(tmp_path / "rest.h5", frames=5, level=1)))
     assert not (tmp_path / "out" / "model.pt").exists()
     # the command line prints each as one line, exit code 1
+    capsys.readouterr()
     assert cli("--data", few, "--out", tmp_path / "out", "--base", base, *QUICK) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "at least 3" in err
