@@ -40,7 +40,7 @@ DESCRIPTIONS = {
     "model": "the calibrated model (load it with predict, evaluate or live)",
     "aligned": "the base model after the zero-press alignment only",
     "learning_curve": "the learning curve (PNG)",
-    "train": "the fine-tuning's run folder (config, split, metrics.jsonl, checkpoints)",
+    "train": "the fine-tuning's log (its run folder also holds config, split, checkpoints)",
 }
 
 
@@ -81,7 +81,7 @@ def write_outputs(out: Path, final: dict, stages: dict, record: dict) -> dict:
         "report": REPORT_FILE,
     }
     if record["fine_tuning"]:
-        files["train"] = TRAIN_FOLDER + "/"
+        files["train"] = f"{TRAIN_FOLDER}/{TRAIN_METRICS}"
     metrics = {
         **final,
         "files": files,
