@@ -39,7 +39,7 @@ class CalibrateConfig(_Serializable):
     skip: int = 0  # drop the first presses (a new pouch's break-in)
     gain: bool = False  # fit a per-sensor force gain on the training presses
     layers: str = "all"  # all | decoder | none (alignment only)
-    lr: float = 1e-3  # peak AdamW learning rate (cosine to lr_min over the budget)
+    lr: float = 3e-4  # peak AdamW learning rate (cosine to lr_min over the budget)
     lr_min: float = 1e-5
     batch_size: int = 16
     augment: bool = True  # the 8 dihedral transforms
