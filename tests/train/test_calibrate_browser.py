@@ -15,7 +15,7 @@ pytestmark = [
     pytest.mark.browser,
     pytest.mark.skipif(not CHROMIUM.exists(), reason="chromium is not installed"),
 ]
-FIGURES = ["examples.png", "region_error.png", "force_traces.png", "learning_curve.png"]
+FIGURES = ["examples.png", "force_traces.png", "region_error.png", "learning_curve.png"]
 
 
 def test_calibration_report_in_chromium(make_dataset, tiny_model, tmp_path):

@@ -150,7 +150,7 @@ CALIBRATE_FLAGS = (
     ("layers", "layers to fine-tune: all, decoder, or none (alignment only)"),
     ("lr", "peak learning rate (cosine schedule over the budget)"),
     ("batch_size", "windows per step"),
-    ("augment", "no dihedral augmentation"),
+    ("augment", "augment with the 8 dihedral transforms (off: measured better for one pouch)"),
     ("seed", "seed of the split and the batch order"),
     ("device", "auto, cpu, cuda, cuda:N or mps"),
     ("overwrite", "replace an earlier calibration in --out"),

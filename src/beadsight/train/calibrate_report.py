@@ -133,5 +133,5 @@ def calibration_report(metrics: dict, record: dict, files: dict) -> Report:
         baselines={STAGE_NAMES[k]: v for k, v in metrics["stages"].items() if k in STAGE_NAMES},
         notes=notes,
         figures=figures,
-        files=evaluation_links(files, DESCRIPTIONS),
+        files=evaluation_links({k: v for k, v in files.items() if k != "report"}, DESCRIPTIONS),
     )
