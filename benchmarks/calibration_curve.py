@@ -153,6 +153,7 @@ def plot(pouches: list[dict], counts: list[int], path: Path) -> None:
             ax.plot(counts, [np.nan if y is None else y for y in ys], "o-", label=method)
         ax.axhline(PAPER_METRICS[key], color="grey", linestyle=":", label="paper")
         ax.set_xscale("log")
+        ax.minorticks_off()
         ax.set_xticks(counts, [str(n) for n in counts])
         ax.set_xlabel("presses of the new pouch")
         ax.set_ylabel(label)
