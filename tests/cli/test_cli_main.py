@@ -57,7 +57,16 @@ def test_help_of_beadsight_and_every_command_imports_no_torch():
         heavy = _heavy_modules_of([name, "--help"])
         assert "torch" not in heavy, f"beadsight {name} --help imports torch"
         assert not {"cyclonedds", "foxglove"} & set(heavy), f"beadsight {name} --help: {heavy}"
-        if name in ("train", "demo", "evaluate", "predict", "export", "info", "simulate"):
+        if name in (
+            "train",
+            "calibrate",
+            "demo",
+            "evaluate",
+            "predict",
+            "export",
+            "info",
+            "simulate",
+        ):
             assert heavy == [], f"beadsight {name} --help imports {heavy}"
 
 

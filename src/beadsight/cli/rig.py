@@ -13,6 +13,7 @@ from pathlib import Path
 from beadsight.rig.config import CAMERA_MODES, SCALE_PROTOCOLS  # light: no numpy
 
 EXIT_CODES = {"complete": 0, "interrupted": 130}  # any other status: 1
+NAMED_PLANS = ("calibration",)  # --plan NAME instead of a TOML file: that pattern
 
 DEVICE_FLAGS = (
     ("printer_baud", "printer serial baud rate"),
@@ -22,7 +23,7 @@ DEVICE_FLAGS = (
 )
 PLAN_FLAGS = (  # None unless given: a --plan file's values, else PressPlan's, apply
     ("presses", "data presses"),
-    ("pattern", "press locations: random or grid"),
+    ("pattern", "press locations: random, grid or calibration"),
     ("seed", "plan seed (locations and depths)"),
     ("calibration_presses", "centre presses first"),
 )
@@ -120,7 +121,12 @@ def _collect_arguments(p: argparse.ArgumentParser) -> None:
         src, "--camera-size", size, "camera frame size asked for", nargs=2, metavar=("W", "H")
     )
     plan = p.add_argument_group("press plan (defaults: the reference pattern)")
-    plan.add_argument("--plan", type=Path, help="TOML file with PressPlan fields")
+    plan.add_argument(
+        "--plan",
+        metavar="FILE.toml|calibration",
+        help="a TOML file with PressPlan fields, or 'calibration': positions and depths that "
+        "cover the pad and the force range evenly for few presses (docs/calibration.md)",
+    )
     add_fields(plan, PressPlan, PLAN_FLAGS, override=True)
     safety = p.add_argument_group("safety and session")
     add_option(
@@ -165,6 +171,9 @@ def _collect(args: argparse.Namespace) -> int:
     from beadsight.rig.plan import PressPlan
 
     overrides = {name: getattr(args, name) for name, *_ in PLAN_FLAGS}
+    plan_file = None if args.plan in NAMED_PLANS else args.plan
+    if args.plan in NAMED_PLANS and overrides["pattern"] is None:
+        overrides["pattern"] = args.plan
     options = {
         "resume": args.resume,
         "force_limit_n": args.force_limit,
@@ -185,10 +194,11 @@ def _collect(args: argparse.Namespace) -> int:
             seed=args.sim_seed,
         )
         plan = (
-            PressPlan.from_toml(args.plan, **overrides)
-            if args.plan
+            PressPlan.from_toml(plan_file, **overrides)
+            if plan_file
             else PressPlan.for_simulator(simulator_config(rig), **overrides)
         )
+        _announce(plan)
         result = collect_with_virtual_rig(rig, plan, args.out, **options)
     else:
         missing = [f"--{n}" for n in ("printer", "scale", "camera") if not getattr(args, n)]
@@ -206,10 +216,11 @@ def _collect(args: argparse.Namespace) -> int:
             args.camera_fps,
         )
         plan = (
-            PressPlan.from_toml(args.plan, **overrides)
-            if args.plan
+            PressPlan.from_toml(plan_file, **overrides)
+            if plan_file
             else PressPlan(**{k: v for k, v in overrides.items() if v is not None})
         )
+        _announce(plan)
         result = collect_with_hardware(spec, plan, args.out, **options)
     print(f"{result.path}: {result.status}: {result.message}")
     print(
@@ -218,6 +229,13 @@ def _collect(args: argparse.Namespace) -> int:
         + (f"; aborted presses {result.aborted}" if result.aborted else "")
     )
     return EXIT_CODES.get(result.status, 1)
+
+
+def _announce(plan) -> None:
+    print(
+        f"plan: {plan.total} presses ({plan.pattern}, {plan.calibration_presses} at the centre "
+        f"first), about {plan.duration_s() / 60:.1f} min of printer moves"
+    )
 
 
 # --- process ---------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Training command: ``beadsight train --data D --out RUN [...]``."""
+"""Training commands: ``beadsight train --data D --out RUN [...]`` and ``beadsight calibrate``."""
 
 from __future__ import annotations
 
@@ -11,6 +11,16 @@ import os
 TRAIN_FLAGS = (
     ("steps", "optimizer steps in total (default: --epochs passes)", {"type": int}),
     ("epochs", "passes over the training windows"),
+    (
+        "budget_min",
+        "wall-clock budget in minutes: stop then (or at --steps/--epochs, whichever is first)",
+        {"type": float, "metavar": "M"},
+    ),
+    ("val_every_min", "also validate this often, minutes (default: every epoch)", {"type": float}),
+    ("presses", "train on only this many presses of the dataset", {"type": int}),
+    ("skip_presses", "drop the dataset's first presses (a new pouch's break-in)"),
+    ("train_layers", "all, or decoder (the encoder stays as initialised)"),
+    ("augment", "no dihedral augmentation"),
     ("batch_size", "windows per step over all processes"),
     ("lr", "AdamW learning rate"),
     ("lr_schedule", "constant, or cosine: decay from --lr to --lr-min over the run's steps"),
@@ -51,11 +61,18 @@ TRAIN_FLAGS = (
 
 def register(commands) -> None:
     commands.add("train", _train, _arguments)
+    commands.add("calibrate", _calibrate, _calibrate_arguments)
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
     from beadsight.cli.options import add_fields
-    from beadsight.train.config import LOADER_MODES, LR_SCHEDULES, PRECISIONS, TrainConfig
+    from beadsight.train.config import (
+        LOADER_MODES,
+        LR_SCHEDULES,
+        PRECISIONS,
+        TRAIN_LAYERS,
+        TrainConfig,
+    )
 
     p.add_argument("--data", default=None, help="dataset .h5 (ours or a reference HDF5 file)")
     p.add_argument("--out", default=None, help="run folder to create (or to resume)")
@@ -71,7 +88,12 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="continue the run in --out from its last.pt (same split, optimizer, step)",
     )
-    choices = {"lr_schedule": LR_SCHEDULES, "precision": PRECISIONS, "loader": LOADER_MODES}
+    choices = {
+        "lr_schedule": LR_SCHEDULES,
+        "precision": PRECISIONS,
+        "loader": LOADER_MODES,
+        "train_layers": TRAIN_LAYERS,
+    }
     rows = [
         (name, help, {**(extra[0] if extra else {}), **_choices(choices, name)})
         for name, help, *extra in TRAIN_FLAGS
@@ -106,3 +128,83 @@ def _train(args: argparse.Namespace) -> int:
     print(f"  best checkpoint: {run / 'best.pt'}")
     print(f"  last checkpoint: {run / 'last.pt'}")
     return 0
+
+
+# --- calibrate ---------------------------------------------------------------------------
+CALIBRATE_FLAGS = (
+    (
+        "base",
+        "checkpoint to start from (default: the shipped base model)",
+        {"metavar": "CKPT", "type": str},
+    ),
+    ("budget_min", "wall-clock budget of the whole calibration, minutes", {"metavar": "M"}),
+    (
+        "rest",
+        "frames of the untouched sensor (.h5) for the zero-press alignment (default: the "
+        "presses' pre-contact frames)",
+        {"metavar": "REST.h5", "type": str},
+    ),
+    ("presses", "use only this many presses (after --skip)", {"type": int, "metavar": "N"}),
+    ("skip", "drop the first K presses (break-in)", {"metavar": "K"}),
+    ("gain", "fit a per-sensor force gain on the training presses"),
+    ("layers", "layers to fine-tune: all, decoder, or none (alignment only)"),
+    ("lr", "peak learning rate (cosine schedule over the budget)"),
+    ("batch_size", "windows per step"),
+    ("augment", "augment with the 8 dihedral transforms (off: measured better for one pouch)"),
+    ("seed", "seed of the split and the batch order"),
+    ("device", "auto, cpu, cuda, cuda:N or mps"),
+    ("overwrite", "replace an earlier calibration in --out"),
+    ("progress", "no progress bars"),
+)
+
+
+def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.cli.options import add_fields
+    from beadsight.train.calibrate_config import LAYER_CHOICES, CalibrateConfig
+
+    p.add_argument(
+        "--data", required=True, help="the new sensor's presses (.h5, ours or the reference's)"
+    )
+    p.add_argument(
+        "--out", required=True, help="output folder: model.pt, metrics.json, report.html"
+    )
+    rows = [
+        (name, help, {**(extra[0] if extra else {}), **_choices({"layers": LAYER_CHOICES}, name)})
+        for name, help, *extra in CALIBRATE_FLAGS
+    ]
+    add_fields(p, CalibrateConfig, rows)
+    p.add_argument("--no-gain", dest="gain", action="store_false", help="no force gain")
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    """Fit the base model to a new sensor from a few of its presses.
+
+    Zero-press alignment (normalisation from rest frames), then fine-tuning under a
+    wall-clock budget with early stopping on held-out presses. Writes OUT/model.pt,
+    OUT/metrics.json and OUT/report.html: metrics on test presses of this sensor beside
+    the paper's, the base model's zero-shot figures and the alignment alone.
+    """
+    from beadsight.cli.options import field_values
+    from beadsight.train.calibrate import calibrate
+    from beadsight.train.calibrate_config import REPORT_FILE, CalibrateConfig
+
+    metrics = calibrate(CalibrateConfig(**field_values(args, CalibrateConfig)))
+    stages = metrics["stages"]
+    print(f"{'':22s} {'zero-shot':>10s} {'aligned':>10s} {'calibrated':>10s} {'paper':>8s}")
+    for key, label in (
+        ("mae_kpa", "MAE (kPa)"),
+        ("force_error_pct", "force error (%)"),
+        ("cop_error_mm", "CoP error (mm)"),
+        ("iou", "contact IoU"),
+        ("worst_region_mae_kpa", "worst region (kPa)"),
+    ):
+        row = [stages[s].get(key) for s in ("zero_shot", "aligned", "calibrated")]
+        row.append(metrics["paper"].get(key))
+        print(f"{label:22s} " + " ".join(_num(v) for v in row))
+    print(f"coverage {100 * metrics['coverage']:.1f} % of the test presses' valid frames")
+    print(f"model: {args.out}/model.pt; report: {args.out}/{REPORT_FILE}")
+    return 0
+
+
+def _num(value) -> str:
+    return f"{value:10.3f}" if isinstance(value, (int, float)) else f"{'n/a':>10s}"

@@ -58,6 +58,7 @@ from beadsight.evaluation.selection import (
     SplitSelection,
     coverage,
     evaluation_frames,
+    given_presses,
     select_split,
     selection_ends,
     subsample,
@@ -264,6 +265,8 @@ def evaluate(
     resize: bool = False,
     progress: bool = True,
     report: bool = True,
+    presses: np.ndarray | None = None,
+    train_presses: np.ndarray | None = None,
 ) -> dict:
     """Evaluate ``checkpoint`` on the ``split`` of dataset ``data``; returns the metrics dict.
 
@@ -277,6 +280,8 @@ def evaluate(
     ``resize`` allows a checkpoint trained at another image size (see
     :func:`evaluation_geometry`). With ``out_dir`` the files of the module
     docstring are written there (``report=False``: all but ``index.html``).
+    ``presses`` (dataset press ids) replaces ``split``: exactly those presses are scored
+    (``train_presses``: the training presses, for the mean-label baseline).
     """
     if batch_size < 1:
         raise EvaluationError(f"--batch-size must be >= 1, got {batch_size}")
@@ -287,7 +292,10 @@ def evaluate(
     with open_dataset(data) as ds:
         ds.require_presses()
         run = _Run(model, ds, evaluation_geometry(model, ds, resize), batch_size)
-        selection = select_split(model, ds, split)
+        if presses is None:
+            selection = select_split(model, ds, split)
+        else:
+            selection = given_presses(ds, presses, train_presses)
         ends = evaluation_frames(model, ds, selection, max_frames)
         covered = coverage(ds, selection, model.span, ends.size)
         log.info(

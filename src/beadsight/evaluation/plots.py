@@ -201,3 +201,60 @@ def force_traces_caption() -> str:
         "the press's first evaluated frame; where frames were subsampled (--max-frames) the "
         "lines join the evaluated frames."
     )
+
+
+# --- calibration --------------------------------------------------------------------
+@dataclass(frozen=True)
+class CurvePoint:
+    """One model of a calibration, scored on the held-out presses."""
+
+    label: str  # e.g. "zero-shot"
+    presses: int  # presses its weights were trained on (0: none of this sensor's)
+    force_error_pct: float | None
+
+
+def plot_learning_curve(
+    points: Sequence[CurvePoint],
+    val_time_s: np.ndarray,
+    val_mae_kpa: np.ndarray,
+    kept: int | None,
+    paper_force_error_pct: float,
+    path: str | Path,
+) -> Path:
+    """Left: held-out force error against the presses used; right: the early-stopping
+    presses' MAE over the fine-tuning (time in s), the kept checkpoint (index ``kept``)
+    circled."""
+    fig = _new_figure(8.0, 3.2)
+    left, right = fig.subplots(1, 2)
+    fig.subplots_adjust(left=0.09, right=0.98, bottom=0.16, top=0.88, wspace=0.3)
+    for point in points:
+        if point.force_error_pct is not None:
+            left.plot(point.presses, point.force_error_pct, "o", label=point.label)
+    left.axhline(paper_force_error_pct, color="grey", linestyle=":", label="paper")
+    left.set_xlabel("presses of this sensor trained on")
+    left.set_ylabel("force error on held-out presses (%)")
+    left.set_ylim(bottom=0)
+    left.legend(fontsize=7)
+    left.grid(alpha=0.3)
+    if len(val_time_s):
+        right.plot(val_time_s, val_mae_kpa, "-o", markersize=3, color="tab:blue")
+        if kept is not None:
+            right.plot(val_time_s[kept], val_mae_kpa[kept], "o", mfc="none", ms=10, color="tab:red")
+    else:
+        right.text(0.5, 0.5, "no fine-tuning", ha="center", va="center", transform=right.transAxes)
+    right.set_xlabel("fine-tuning time (s)")
+    right.set_ylabel("MAE on early-stopping presses (kPa)")
+    right.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def learning_curve_caption() -> str:
+    return (
+        "Left: total-force error (%) on this sensor's held-out test presses against the number "
+        "of its presses the model was trained on: the base model as it came (zero-shot) and "
+        "after the zero-press alignment (both 0 presses), and the calibrated model; the dotted "
+        "line is the paper's 11.9 %. These are the models of this one run, not a curve over "
+        "press counts: benchmarks/calibration_curve.py measures that. Right: the validation "
+        "MAE (kPa) on the early-stopping presses during fine-tuning against its wall-clock "
+        "time; the red circle marks the checkpoint kept (lowest validation loss)."
+    )

@@ -288,7 +288,11 @@ def _split_text(metrics: Mapping) -> str:
     split, source = metrics.get("split", "?"), metrics.get("split_source", "")
     if split == "all":
         return "every press"
-    how = {"checkpoint": "as stored in the checkpoint", "recomputed": "recomputed"}.get(
+    how = {
+        "checkpoint": "as stored in the checkpoint",
+        "recomputed": "recomputed",
+        "given": "presses kept out of training",
+    }.get(
         source, source
     )
     return f"the {split} split ({how})" if how else f"the {split} split"

@@ -11,6 +11,7 @@
   ``"test"`` is refused, since a recomputed split could score the model on frames it
   was trained on. The reference keeps no validation split: ``"val"`` is refused.
 * ``"all"`` uses every press.
+* :func:`given_presses`: press ids the caller chose (``evaluate(..., presses=...)``).
 
 The evaluated frames are those of the split with a full window of valid,
 continuous history (:func:`beadsight.data.splits.dataset_window_ends`), also when
@@ -41,6 +42,7 @@ from beadsight.evaluation.config import SPLIT_CHOICES
 log = logging.getLogger(__name__)
 
 REFERENCE_SPLIT_SOURCE = "reference checkpoint test_indices"
+GIVEN_SPLIT, GIVEN_SOURCE = "held-out", "given"  # presses chosen by the caller
 
 
 class EvaluationError(BeadSightError):
@@ -140,6 +142,22 @@ def select_split(model: PressureModel, ds: Dataset, split: str) -> SplitSelectio
             seed,
         )
     return SplitSelection(split, ids[split], ids["train"], source)
+
+
+def given_presses(
+    ds: Dataset, presses, train_presses=None, name: str = GIVEN_SPLIT
+) -> SplitSelection:
+    """A selection of the press ids ``presses`` (and ``train_presses`` for the baselines),
+    e.g. a calibration's held-out presses scored with a model trained elsewhere."""
+    ids = np.unique(np.asarray(presses, dtype=np.int64).reshape(-1))
+    train = np.unique(np.asarray([] if train_presses is None else train_presses, np.int64))
+    bad = np.concatenate([ids, train])
+    bad = bad[(bad < 0) | (bad >= ds.num_presses)]
+    if bad.size:
+        raise EvaluationError(
+            f"press {int(bad[0])} is not a press of {ds.path} ({ds.num_presses} presses)"
+        )
+    return SplitSelection(name, ids, train, GIVEN_SOURCE)
 
 
 def _indices(training: dict, key: str) -> np.ndarray | None:

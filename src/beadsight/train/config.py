@@ -32,6 +32,7 @@ PRECISIONS = ("fp32", "bf16", "fp16")
 SIZE_MULTIPLE = 8  # the U-Net halves the image three times
 LR_SCHEDULES = ("constant", "cosine")
 LOADER_MODES = ("auto", "host", "device")
+TRAIN_LAYERS = ("all", "decoder")  # which U-Net layers an optimizer step changes
 # Fields a resumed run must share with the run it continues (others, e.g. steps, may change).
 RESUME_FIXED_FIELDS = (
     "frames",
@@ -48,6 +49,10 @@ RESUME_FIXED_FIELDS = (
     "lr_min",
     "weight_decay",
     "noise_std",
+    "presses",
+    "skip_presses",
+    "train_layers",
+    "augment",
 )
 # Settings read from the ``init`` checkpoint when neither the TOML file nor a flag sets them.
 INIT_MODEL_FIELDS = ("frames", "frame_stride", "width", "up_kernel")
@@ -61,9 +66,11 @@ _INT_MINIMUMS = {
     "checkpoint_every_steps": 1,
     "val_stride": 1,
     "seed": 0,
+    "skip_presses": 0,
 }
-_OPTIONAL_INTS = ("steps", "threads", "image_size")  # None, or an integer >= 1
+_OPTIONAL_INTS = ("steps", "threads", "image_size", "presses")  # None, or an integer >= 1
 _NON_NEGATIVE = ("lr", "lr_min", "weight_decay", "noise_std", "checkpoint_every_min")
+_OPTIONAL_POSITIVE = ("budget_min", "val_every_min")  # None, or a number > 0
 
 
 @renamed_fields(window="frames")
@@ -75,6 +82,8 @@ class TrainConfig(_Serializable):
     out: str  # run folder
     steps: int | None = None  # optimizer steps in total; None: train for ``epochs``
     epochs: int = 100  # passes over the training windows (used when steps is None)
+    budget_min: float | None = None  # wall-clock budget in minutes (validation included):
+    # the run stops at the budget or at steps/epochs, whichever comes first
     batch_size: int = 64  # windows per optimizer step, over all DDP processes together
     lr: float = 1e-4  # AdamW learning rate (the peak one under a schedule)
     lr_schedule: str = "constant"  # constant | cosine (from lr down to lr_min over the run)
@@ -100,6 +109,12 @@ class TrainConfig(_Serializable):
     checkpoint_every_steps: int = 1000  # also save last.pt every this many steps
     checkpoint_every_min: float = 10.0  # ... and at least this often (minutes)
     val_stride: int = 1  # validate on every val_stride-th window (1: all)
+    val_every_min: float | None = None  # also validate (best.pt) this often; None: per epoch
+    val_at_start: bool = False  # validate the initial weights too (best.pt may be them)
+    presses: int | None = None  # use only this many presses of the dataset (None: all)
+    skip_presses: int = 0  # ... after dropping its first ones (a new pouch's break-in)
+    train_layers: str = "all"  # all | decoder (the encoder stays as initialised)
+    augment: bool = True  # the 8 dihedral transforms of the training windows
     progress: bool = True  # tqdm progress bars
 
     def __post_init__(self) -> None:
@@ -126,6 +141,12 @@ class TrainConfig(_Serializable):
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value >= 0:
                 raise ConfigError(f"{name} must be a number >= 0, got {value!r}")
             object.__setattr__(self, name, float(value))
+        for name in _OPTIONAL_POSITIVE:
+            value = getattr(self, name)
+            if value is not None:
+                if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0:
+                    raise ConfigError(f"{name} must be a number > 0, got {value!r}")
+                object.__setattr__(self, name, float(value))
         if not self.lr > 0:
             raise ConfigError(f"lr must be > 0, got {self.lr}")
         if self.lr_min > self.lr:
@@ -141,6 +162,7 @@ class TrainConfig(_Serializable):
             ("lr_schedule", LR_SCHEDULES),
             ("precision", PRECISIONS),
             ("loader", LOADER_MODES),
+            ("train_layers", TRAIN_LAYERS),
         ):
             if getattr(self, name) not in choices:
                 raise ConfigError(f"{name} must be one of {choices}, got {getattr(self, name)!r}")
@@ -163,11 +185,16 @@ class TrainConfig(_Serializable):
         """Consecutive frames one training window covers (the model config's span)."""
         return self.model_config().span
 
-    def learning_rate(self, step: int, total_steps: int) -> float:
-        """The learning rate of optimizer step ``step`` (0-based) of ``total_steps``."""
-        if self.lr_schedule == "constant" or total_steps <= 1:
+    def learning_rate(self, step: int, total_steps: int, progress: float | None = None) -> float:
+        """The learning rate of optimizer step ``step`` (0-based) of ``total_steps``, or at
+        ``progress`` (0..1: the share of a wall-clock budget spent) when given."""
+        if self.lr_schedule == "constant":
             return self.lr
-        progress = min(step, total_steps - 1) / (total_steps - 1)
+        if progress is None:
+            if total_steps <= 1:
+                return self.lr
+            progress = min(step, total_steps - 1) / (total_steps - 1)
+        progress = min(max(progress, 0.0), 1.0)
         return self.lr_min + 0.5 * (self.lr - self.lr_min) * (1.0 + math.cos(math.pi * progress))
 
 

@@ -34,18 +34,21 @@ from beadsight.checkpoint import (
 )
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import Dataset, DatasetError
-from beadsight.data.splits import SPLITS, dataset_window_ends
+from beadsight.data.splits import SPLITS, dataset_window_ends, split_presses
 from beadsight.geometry import disk_maps
 from beadsight.train.config import (
     INIT_SHAPE_FIELDS,
     RESUME_FIXED_FIELDS,
     SIZE_MULTIPLE,
+    TRAIN_LAYERS,
     TrainConfig,
     field_default,
 )
 from beadsight.train.windows import WindowLabels, pixel_stats, window_frame_mask
 
 logger = logging.getLogger(__name__)
+
+DECODER_LAYERS = ("U2", "C7", "U3", "C8", "U4", "C9", "pred")  # model.UNet's up path and head
 
 
 # --- data ---------------------------------------------------------------------------
@@ -99,6 +102,33 @@ def prepare_data(
         logger.warning("no validation windows: best.pt will follow the training loss")
     mask = window_frame_mask(np.concatenate([labels[n].ends for n in labels]), span, len(ds))
     return RunData(split, labels, image_size, fp, mask)
+
+
+def split_used_presses(config: TrainConfig, ds: Dataset) -> dict[str, np.ndarray]:
+    """The run's split: the presses it uses (``presses`` of them after the first
+    ``skip_presses``) shuffled with ``seed`` and cut by ``split``; dataset press ids."""
+    first = config.skip_presses
+    stop = ds.num_presses if config.presses is None else min(first + config.presses, ds.num_presses)
+    if stop <= first:
+        raise ConfigError(
+            f"skip_presses {first} leaves no press of the {ds.num_presses} in {ds.path}"
+        )
+    split = split_presses(stop - first, config.split, config.seed)
+    return {name: ids + first for name, ids in split.items()}
+
+
+def trainable_parameters(net: torch.nn.Module, layers: str) -> list[torch.nn.Parameter]:
+    """The parameters ``layers`` ("all", or "decoder": the up path and the head) trains;
+    the others get ``requires_grad=False``."""
+    if layers not in TRAIN_LAYERS:
+        raise ConfigError(f"train_layers must be one of {TRAIN_LAYERS}, got {layers!r}")
+    chosen = []
+    for name, param in net.named_parameters():
+        train = layers == "all" or name.split(".")[0] in DECODER_LAYERS
+        param.requires_grad_(train)
+        if train:
+            chosen.append(param)
+    return chosen
 
 
 def split_record(config: TrainConfig, ds: Dataset, data: RunData) -> dict[str, Any]:

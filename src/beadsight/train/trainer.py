@@ -16,6 +16,10 @@ Learning rate: constant (the reference), or ``lr_schedule="cosine"``, decaying f
 existing checkpoint (fine-tuning, e.g. the shipped simulated-sensor model on a real
 sensor's data).
 
+``budget_min`` stops the run after that much wall-clock time (the schedule then spans
+the budget; :mod:`~beadsight.train.budget`); ``presses``/``skip_presses`` train on a
+part of the dataset's presses; ``train_layers="decoder"`` keeps the encoder fixed.
+
 Checkpoints are written atomically every epoch, every ``checkpoint_every_steps``
 steps and every ``checkpoint_every_min`` minutes, so a killed run loses little;
 ``resume=True`` continues from ``last.pt`` with the same split, optimizer state,
@@ -39,9 +43,10 @@ from tqdm import tqdm
 
 from beadsight.config import ConfigError
 from beadsight.data.dataset import open_dataset
-from beadsight.data.splits import SPLITS, split_presses
+from beadsight.data.splits import SPLITS
 from beadsight.errors import BeadSightError
 from beadsight.files import WriteError
+from beadsight.train.budget import Clock
 from beadsight.train.config import TrainConfig
 from beadsight.train.distributed import Distributed, resolve_device
 from beadsight.train.prepare import (
@@ -51,6 +56,8 @@ from beadsight.train.prepare import (
     new_model,
     prepare_data,
     split_record,
+    split_used_presses,
+    trainable_parameters,
 )
 from beadsight.train.run import CONFIG_FILE, SPLIT_FILE, RunFolder
 from beadsight.train.step import autocast, model_inputs, optimizer_step
@@ -103,7 +110,7 @@ class Trainer:
             self.resume_state, self.step = resumed.state, resumed.step
             self.elapsed_s, self.best = resumed.elapsed_s, resumed.best
         else:
-            split = split_presses(self.ds.num_presses, config.split, config.seed)
+            split = split_used_presses(config, self.ds)
         self.data = prepare_data(config, self.ds, split, image_size, fingerprint)
         if model is None:
             make = init_model if config.init else new_model
@@ -119,7 +126,9 @@ class Trainer:
         config = self.config
         net = self.module.net
         self.optimizer = torch.optim.AdamW(
-            net.parameters(), lr=config.lr, weight_decay=config.weight_decay
+            trainable_parameters(net, config.train_layers),
+            lr=config.lr,
+            weight_decay=config.weight_decay,
         )
         self.scaler = torch.amp.GradScaler("cuda") if config.precision == "fp16" else None
         self.autocast_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(config.precision)
@@ -179,7 +188,7 @@ class Trainer:
             num_workers=config.num_workers,
         )
         self.train_loader = WindowLoader(
-            sources["train"], per_rank, shuffle=True, augment=True, **common
+            sources["train"], per_rank, shuffle=True, augment=config.augment, **common
         )
         self.val_loader = WindowLoader(
             sources["val"],
@@ -319,7 +328,7 @@ class Trainer:
 
     # --- the loop ---
     def _elapsed(self) -> float:
-        return self.elapsed_s + time.monotonic() - self._t0
+        return self.clock.elapsed()
 
     def _log(self, **values: Any) -> None:
         if self.dist.is_main:
@@ -378,7 +387,9 @@ class Trainer:
                 bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
         elif single:  # no collective needed to agree on the clock
             timed_save = now - self._last_save >= 60 * config.checkpoint_every_min
-        if timed_save or self.step % config.checkpoint_every_steps == 0:
+        if single and self.clock.validation_due():
+            self._end_of_epoch()  # validates, keeps best.pt, saves last.pt
+        elif timed_save or self.step % config.checkpoint_every_steps == 0:
             self.save()
 
     def _end_of_epoch(self) -> None:
@@ -407,41 +418,38 @@ class Trainer:
                 " (best)" if improved else "",
             )
         self.save(best=improved or not self.run.best.is_file())
+        self.clock.validated()
 
     def loop(self) -> None:
         config, spe = self.config, self.steps_per_epoch
         total = config.steps if config.steps is not None else config.epochs * spe
-        self._t0 = self._last_save = time.monotonic()
+        self.clock = clock = Clock(config, self.elapsed_s)
+        self._last_save = time.monotonic()
         self._interval = {
             "loss_sum": torch.zeros((), device=self.device),
             "steps": 0,
             "t0": time.monotonic(),
         }
         self._epoch_loss = [0.0, 0]
-        if self.step >= total:
+        if self.step >= total or clock.exhausted():
             logger.info("run %s already reached step %d of %d", self.run.path, self.step, total)
             return
-        bar = tqdm(
-            total=total,
-            initial=self.step,
-            desc="training",
-            unit="step",
-            mininterval=1.0,
-            disable=not (config.progress and self.dist.is_main),
-        )
+        bar = clock.bar(self.step, total, disable=not (config.progress and self.dist.is_main))
+        if config.val_at_start and self.step == 0:
+            self._end_of_epoch()  # the initial weights are a candidate for best.pt
         try:
-            while self.step < total:
+            while self.step < total and not self._out_of_time():
                 epoch, skip = divmod(self.step, spe)
                 self.train_loader.set_epoch(epoch, skip)
                 start = self.step
                 for frames, targets in self.train_loader:
                     for group in self.optimizer.param_groups:
-                        group["lr"] = config.learning_rate(self.step, total)
+                        group["lr"] = config.learning_rate(self.step, total, clock.progress())
                     self._interval["loss_sum"] += self.train_step(frames, targets)
                     self._interval["steps"] += 1
                     self.step += 1
-                    bar.update(1)
-                    if self.step % spe == 0 or self.step >= total:
+                    clock.advance(bar)
+                    if self.step % spe == 0 or self.step >= total or self._out_of_time():
                         break  # the epoch's end saves
                     self._after_step(bar)
                 if self.step == start:
@@ -454,6 +462,12 @@ class Trainer:
             raise
         finally:
             bar.close()
+
+    def _out_of_time(self) -> bool:
+        """The budget is spent (agreed by all ranks, which stop together)."""
+        if self.clock.limit_s is None:
+            return False
+        return self.dist.any(self.clock.exhausted(), self.device)
 
     def close(self) -> None:
         for loader in (getattr(self, "train_loader", None), getattr(self, "val_loader", None)):

@@ -1,0 +1,139 @@
+"""``beadsight calibrate`` end to end on tiny data (our layout and the reference's), its
+outputs, and the clear error of each bad input."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
+
+from beadsight import load_checkpoint
+from beadsight.cli import main
+from beadsight.config import ConfigError, SensorGeometry
+from beadsight.data.dataset import DatasetError, DatasetWriter
+from beadsight.data.reference_file import export_reference
+from beadsight.evaluation.evaluate import evaluate
+from beadsight.train.calibrate import calibrate
+from beadsight.train.calibrate_config import CalibrateConfig
+
+QUICK = ["--budget-min", "0.1", "--no-progress"]
+
+
+def cli(*args) -> int:
+    return main(["calibrate", *map(str, args)])
+
+
+@pytest.fixture
+def base(tiny_model, tmp_path):
+    """A 64 px, width-8, 15-frame base model (untrained: calibration must do the work)."""
+    return tiny_model.save(tmp_path / "base.pt")
+
+
+def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
+    make_dataset, tmp_path, capsys
+):
+    data = make_dataset(presses=6, frames_per_press=60)
+    out = tmp_path / "cal"
+    assert cli("--data", data, "--out", out, *QUICK) == 0
+    printed = capsys.readouterr().out
+    assert "zero-shot" in printed and "calibrated" in printed and "report.html" in printed
+    for name in ("model.pt", "aligned.pt", "metrics.json", "report.html", "learning_curve.png"):
+        assert (out / name).is_file(), name
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics["stages"]) == {"zero_shot", "aligned", "calibrated"}
+    assert metrics["split"] == "held-out" and metrics["presses"] == 1
+    assert metrics["coverage"] == metrics["window_coverage"] > 0  # every frame with a window
+    record = metrics["calibration"]
+    assert record["base"].endswith("sim_model.pt") and record["force_gain"] == 1.0
+    assert record["alignment"]["frames"].startswith("pre-contact")
+    assert len(record["presses"]["train"]) == 4 and record["fine_tuning"]["steps"] >= 1
+    assert metrics["calibration"]["seconds"] < 0.1 * 60 + 30
+    page = (out / "report.html").read_text()
+    for text in ("base model, zero-shot", "alignment only", "Learning curve", "paper"):
+        assert text in page
+    # model.pt is a normal checkpoint whose stored split evaluate reuses
+    model = load_checkpoint(out / "model.pt")
+    assert model.meta.provenance["source"] == "beadsight calibrate"
+    again = evaluate(out / "model.pt", data, split="test", progress=False, plots=False)
+    assert again["split_source"] == "checkpoint" and again["frames"] == metrics["frames"]
+    assert again["mae_kpa"] == pytest.approx(metrics["mae_kpa"], rel=1e-5)
+    # a second calibration into the same folder needs --overwrite
+    assert cli("--data", data, "--out", out, *QUICK) == 1
+    assert "--overwrite" in capsys.readouterr().err
+    assert cli("--data", data, "--out", out, "--layers", "none", "--overwrite", *QUICK) == 0
+    assert not (out / "train").exists()
+    assert json.loads((out / "metrics.json").read_text())["calibration"]["fine_tuning"] is None
+
+
+def test_calibrate_a_reference_layout_file_with_rest_frames_and_gain(make_dataset, base, tmp_path):
+    ours = make_dataset(presses=8, frames_per_press=40)
+    reference = export_reference(ours, tmp_path / "reference.h5")  # BGR, grams, no presses
+    rest = _rest_file(tmp_path / "rest.h5", frames=30, level=90)
+    config = CalibrateConfig(
+        data=str(reference), out=str(tmp_path / "cal"), base=str(base), budget_min=0.1,
+        rest=str(rest), gain=True, layers="decoder", skip=1, progress=False,
+    )  # fmt: skip
+    metrics = calibrate(config)
+    record = metrics["calibration"]
+    assert record["alignment"]["count"] == 30 and record["alignment"]["pixel_mean"] == [90.0] * 3
+    assert 0.2 <= record["force_gain"] <= 5.0
+    used = sorted(sum(record["presses"].values(), []))
+    assert used == list(range(1, 8))  # --skip 1 dropped press 0
+    model = load_checkpoint(tmp_path / "cal" / "model.pt")
+    assert model.meta.pixel_mean == [90.0] * 3
+    trained = load_checkpoint(tmp_path / "cal" / "train" / "best.pt")
+    assert model.meta.output_scale_kpa == pytest.approx(
+        trained.meta.output_scale_kpa * record["force_gain"]
+    )
+    assert (tmp_path / "cal" / "report.html").is_file()
+
+
+def _rest_file(path, frames: int, level: int, image_size: int = 64):
+    g = SensorGeometry(image_size_px=image_size)
+    with DatasetWriter(path, g) as w:
+        w.append(
+            np.full((frames, image_size, image_size, 3), level, np.uint8), np.zeros(frames),
+            np.zeros((frames, 2)), np.ones(frames, bool), 1.7e9 + np.arange(frames) / 30.0,
+        )  # fmt: skip
+    return path
+
+
+def test_bad_inputs_get_clear_errors(make_dataset, base, tmp_path, capsys):
+    def run(data, **kw):
+        cfg = CalibrateConfig(data=str(data), out=str(tmp_path / "out"), base=str(base), **kw)
+        return calibrate(cfg)
+
+    few = make_dataset(presses=2, name="few.h5")
+    with pytest.raises(DatasetError, match=r"few\.h5: 2 presses .* at least 3 \(one each"):
+        run(few)
+    six = make_dataset(presses=6, name="six.h5")
+    with pytest.raises(
+        DatasetError, match=r"1 presses .* --skip 5\); calibration needs at least 3"
+    ):
+        run(six, skip=5)
+    untouched = _rest_file(tmp_path / "untouched.h5", frames=40, level=100)
+    with pytest.raises(DatasetError, match=r"untouched\.h5: no contact frames \(field 'force'"):
+        run(untouched)
+    small = make_dataset(presses=6, image_size=32, name="small.h5")
+    with pytest.raises(ConfigError, match=r"image size 32 px of .*small\.h5 does not fit"):
+        run(small)
+    junk = tmp_path / "junk.h5"
+    junk.write_text("not HDF5")
+    with pytest.raises(DatasetError, match="junk.h5"):
+        run(junk)
+    fieldless = tmp_path / "fieldless.h5"
+    with h5py.File(fieldless, "w") as f:
+        f["images"] = np.zeros((4, 64, 64, 3), np.uint8)
+    with pytest.raises(DatasetError, match=r"fieldless\.h5.*force"):
+        run(fieldless)
+    with pytest.raises(DatasetError, match=r"rest\.h5: 5 rest frames"):
+        run(six, rest=str(_rest_file(tmp_path / "rest.h5", frames=5, level=1)))
+    assert not (tmp_path / "out" / "model.pt").exists()
+    # the command line prints each as one line, exit code 1
+    capsys.readouterr()
+    assert cli("--data", few, "--out", tmp_path / "out", "--base", base, *QUICK) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "at least 3" in err
