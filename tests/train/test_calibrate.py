@@ -37,7 +37,8 @@ def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
 ):
     data = make_dataset(presses=6, frames_per_press=60)
     out = tmp_path / "cal"
-    assert cli("--data", data, "--out", out, *QUICK) == 0
+    # the shipped base (width 16) needs a few seconds of its budget for its evaluations
+    assert cli("--data", data, "--out", out, "--budget-min", "0.3", "--no-progress") == 0
     printed = capsys.readouterr().out
     assert "zero-shot" in printed and "calibrated" in printed and "report.html" in printed
     for name in ("model.pt", "aligned.pt", "metrics.json", "report.html", "learning_curve.png"):
@@ -47,10 +48,10 @@ def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     assert metrics["split"] == "held-out" and metrics["presses"] == 1
     assert metrics["coverage"] == metrics["window_coverage"] > 0  # every frame with a window
     record = metrics["calibration"]
-    assert record["base"].endswith("sim_model.pt") and record["force_gain"] == 1.0
+    assert record["base"].endswith("base_model.pt") and record["force_gain"] == 1.0
     assert record["alignment"]["frames"].startswith("pre-contact")
     assert len(record["presses"]["train"]) == 4 and record["fine_tuning"]["steps"] >= 1
-    assert metrics["calibration"]["seconds"] < 0.1 * 60 + 30
+    assert metrics["calibration"]["seconds"] < 0.3 * 60 + 30
     page = (out / "report.html").read_text()
     for text in ("base model, zero-shot", "alignment only", "Learning curve", "paper"):
         assert text in page

@@ -20,6 +20,7 @@ The stages, within one wall-clock budget (``CalibrateConfig.budget_min``):
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import shutil
@@ -27,7 +28,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from beadsight.checkpoint import CheckpointError, PressureModel, load_checkpoint
+from beadsight.checkpoint import (
+    BASE_MODEL,
+    PressureModel,
+    load_checkpoint,
+    shipped_model_path,
+)
 from beadsight.config import ConfigError, ContactThresholds
 from beadsight.data.dataset import DatasetError, open_dataset
 from beadsight.data.splits import dataset_window_ends
@@ -36,7 +42,6 @@ from beadsight.train.align import align_to_rest, fit_force_gain, with_meta
 from beadsight.train.calibrate_config import (
     ALIGNED_FILE,
     CALIBRATION_SPLIT,
-    DEFAULT_BASE_ASSET,
     METRICS_FILE,
     MIN_PRESSES,
     MODEL_FILE,
@@ -63,15 +68,11 @@ STAGE_KEYS = ("mae_kpa", "force_error_pct", "cop_error_mm", "iou", "worst_region
 
 
 def base_checkpoint(base: str | None) -> Path:
-    """The checkpoint a calibration starts from: ``base``, or the shipped DEFAULT_BASE_ASSET."""
+    """The checkpoint a calibration starts from: ``base``, or the shipped base model
+    (``beadsight/assets/base_model.pt``, see its ``base_model.md``)."""
     if base is not None:
         return Path(base)
-    import importlib.resources
-
-    path = Path(str(importlib.resources.files("beadsight").joinpath("assets", DEFAULT_BASE_ASSET)))
-    if not path.is_file():
-        raise CheckpointError(f"the default base model {path} is missing; pass --base CKPT")
-    return path
+    return shipped_model_path(BASE_MODEL)
 
 
 def prepare_out(out: Path, overwrite: bool) -> None:
@@ -240,10 +241,21 @@ def _fine_tuning(training: dict | None, tc: TrainConfig) -> dict | None:
         return None
     return {
         "best": training.get("best_val"),
-        "steps": training.get("step"),
+        "best_step": training.get("step"),
+        "steps": _steps_trained(Path(tc.out)),
         "budget_min": tc.budget_min,
         "run_folder": TRAIN_FOLDER,
     }
+
+
+def _steps_trained(run: Path) -> int:
+    """Optimizer steps the fine-tuning took (its metrics.jsonl's last step; 0 if none)."""
+    steps = 0
+    log = run / "metrics.jsonl"
+    if log.is_file():
+        for line in log.read_text().splitlines():
+            steps = max(steps, int(json.loads(line).get("step") or 0))
+    return steps
 
 
 def finished_model(

@@ -12,9 +12,6 @@ from dataclasses import dataclass
 
 from beadsight.config import DEVICE_CHOICES, ConfigError, _Serializable
 
-# The model a calibration starts from when --base is not given: a file in
-# beadsight/assets. Switch this one name to ship another base model.
-DEFAULT_BASE_ASSET = "sim_model.pt"
 DEFAULT_BUDGET_MIN = 10.0  # minutes for the whole calibration (evaluations included)
 LAYER_CHOICES = ("all", "decoder", "none")  # none: only the zero-press alignment
 CALIBRATION_SPLIT = (0.7, 0.1, 0.2)  # train / early stopping / test, by press
@@ -32,7 +29,7 @@ class CalibrateConfig(_Serializable):
 
     data: str  # the new sensor's presses (HDF5, ours or the reference's layout)
     out: str  # output folder
-    base: str | None = None  # checkpoint to start from; None: DEFAULT_BASE_ASSET
+    base: str | None = None  # checkpoint to start from; None: the shipped base model
     budget_min: float = DEFAULT_BUDGET_MIN  # wall clock for the whole calibration, minutes
     rest: str | None = None  # untouched-sensor frames (HDF5); None: the presses' pre-contact frames
     presses: int | None = None  # use this many presses (after skip); None: all
