@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
 import sys
 import warnings
 from collections.abc import Mapping
@@ -206,6 +207,16 @@ class ModelConfig(_Serializable):
         """Consecutive camera frames one input covers: the newest, and ``frames - 1``
         more every ``frame_stride`` frames back (``frames`` when the stride is 1)."""
         return (self.frames - 1) * self.frame_stride + 1
+
+
+def require_paths(config: Any, *names: str) -> None:
+    """Check that each named field of a frozen config is a non-empty path and store it as
+    str (ConfigError naming the field otherwise)."""
+    for name in names:
+        value = getattr(config, name)
+        if not isinstance(value, (str, os.PathLike)) or not str(value):
+            raise ConfigError(f"{name} must be a path, got {value!r}")
+        object.__setattr__(config, name, str(value))
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:

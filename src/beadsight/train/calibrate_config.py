@@ -7,10 +7,9 @@ the command line reads its defaults from here.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
-from beadsight.config import DEVICE_CHOICES, ConfigError, _Serializable
+from beadsight.config import DEVICE_CHOICES, ConfigError, _Serializable, require_paths
 
 DEFAULT_BUDGET_MIN = 10.0  # minutes for the whole calibration (evaluations included)
 LAYER_CHOICES = ("all", "decoder", "none")  # none: only the zero-press alignment
@@ -48,11 +47,7 @@ class CalibrateConfig(_Serializable):
     progress: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("data", "out"):
-            value = getattr(self, name)
-            if not isinstance(value, (str, os.PathLike)) or not str(value):
-                raise ConfigError(f"{name} must be a path, got {value!r}")
-            object.__setattr__(self, name, str(value))
+        require_paths(self, "data", "out")
         for name in ("budget_min", "lr", "val_every_min"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")

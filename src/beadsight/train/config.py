@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import numbers
-import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
@@ -24,6 +23,7 @@ from beadsight.config import (
     _Serializable,
     load_toml,
     renamed_fields,
+    require_paths,
 )
 from beadsight.files import read_json_object
 
@@ -118,11 +118,7 @@ class TrainConfig(_Serializable):
     progress: bool = True  # tqdm progress bars
 
     def __post_init__(self) -> None:
-        for name in ("data", "out"):
-            value = getattr(self, name)
-            if not isinstance(value, (str, os.PathLike)) or not str(value):
-                raise ConfigError(f"{name} must be a path, got {value!r}")
-            object.__setattr__(self, name, str(value))
+        require_paths(self, "data", "out")
         if self.init is not None:
             object.__setattr__(self, "init", str(self.init))
         self._check_numbers()
