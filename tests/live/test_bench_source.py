@@ -30,3 +30,8 @@ def test_bench_live_source_cli_prints_the_camera_truth(capsys):
     assert result["source"] == "sim" and result["requested_fps"] == 30.0
     assert result["readings"] > 0 and result["camera_duplicated"] == 0
     assert 20 < result["camera_fps"] < 40 and result["camera_slow"] is False
+
+
+def test_bench_live_source_refuses_the_predictor_only_flags(capsys):
+    assert main(["bench", "live", "--source", "sim", "--rate", "30"]) == 1
+    assert "--duration" in capsys.readouterr().err

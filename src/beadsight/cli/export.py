@@ -105,6 +105,13 @@ def _bench_live(args: argparse.Namespace) -> int:
     from beadsight.live.bench import bench_live
 
     if args.source is not None:
+        if args.frames is not None or args.rate is not None:
+            from beadsight.errors import ConfigError
+
+            raise ConfigError(
+                "bench live: --frames and --rate time the predictor alone; "
+                "with --source, give --duration (and --fps) instead"
+            )
         return _bench_source(args)
     model = load_checkpoint(args.checkpoint) if args.checkpoint else None
     options = given(frames=args.frames, rate_hz=args.rate, seed=args.seed)

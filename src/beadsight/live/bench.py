@@ -24,7 +24,7 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -35,6 +35,10 @@ from beadsight.errors import ConfigError
 from beadsight.geometry import disk_pressure_kpa
 from beadsight.inference.parity import check_parity, probe_windows
 from beadsight.inference.predictor import PressurePredictor
+
+if TYPE_CHECKING:
+    from beadsight.live.settings import LiveSettings
+    from beadsight.live.stats import LiveStats
 
 log = logging.getLogger(__name__)
 
@@ -326,8 +330,8 @@ def bench_source(
     checkpoint: Any,
     source: Any,
     duration_s: float = 10.0,
-    settings: Any = None,
-) -> Any:
+    settings: LiveSettings | None = None,
+) -> LiveStats:
     """Run the live loop on ``source`` (camera index or path, video file, ``"sim"``) for
     ``duration_s`` and return its :class:`~beadsight.live.stats.LiveStats`: readings/s,
     camera-to-reading latency, and the camera's truth (delivered fps against the rate
@@ -345,6 +349,6 @@ def bench_source(
     return stats
 
 
-def stats_json(stats: Any, **extra: Any) -> dict[str, Any]:
+def stats_json(stats: LiveStats, **extra: Any) -> dict[str, Any]:
     """A LiveStats as a JSON-safe dict (NaN -> None), with ``extra`` keys first."""
     return {**extra, **_json_safe(asdict(stats))}
