@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from beadsight.devices.base import (
+    DeviceContext,
     DeviceError,
     DeviceNotConnectedError,
     DeviceTimeoutError,
@@ -84,7 +85,7 @@ class ScaleStats:
     protocol: str
 
 
-class HX711Scale:
+class HX711Scale(DeviceContext):
     """An HX711 scale on ``port``; see the module docstring.
 
     protocol: "auto" (detect), "beadsight" (our firmware) or "reference" (plain grams).
@@ -177,13 +178,6 @@ class HX711Scale:
             thread.join(timeout=2.0)
         if io is not None:
             io.close()
-
-    def __enter__(self) -> HX711Scale:
-        self.connect()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     @property
     def stats(self) -> ScaleStats:

@@ -53,6 +53,7 @@ from typing import NoReturn
 
 from beadsight.devices.base import (
     CommandRecord,
+    DeviceContext,
     DeviceError,
     DeviceNotConnectedError,
     PrinterDesyncError,
@@ -124,7 +125,7 @@ def _where(point: Point) -> str:
     return "X={:.3f} Y={:.3f} Z={:.3f}".format(*point)
 
 
-class MarlinPrinter:
+class MarlinPrinter(DeviceContext):
     """A Marlin printer on a serial port; see the module docstring for the protocol.
 
     port: serial device (``/dev/ttyUSB0``, ``COM3``, a virtual printer's ``/dev/pts/N``).
@@ -198,13 +199,6 @@ class MarlinPrinter:
         io, self._io = self._io, None
         if io is not None:
             io.close()
-
-    def __enter__(self) -> MarlinPrinter:
-        self.connect()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     @property
     def connected(self) -> bool:
