@@ -125,6 +125,11 @@ def _where(point: Point) -> str:
     return "X={:.3f} Y={:.3f} Z={:.3f}".format(*point)
 
 
+def _link_counter(name: str, doc: str) -> property:
+    """The int counter ``name`` of the printer's :class:`MarlinLink` (0 before a connect)."""
+    return property(lambda self: getattr(self._link, name) if self._link else 0, doc=doc)
+
+
 class MarlinPrinter(DeviceContext):
     """A Marlin printer on a serial port; see the module docstring for the protocol.
 
@@ -214,25 +219,16 @@ class MarlinPrinter(DeviceContext):
         """The last commanded position (x, y, z) mm, or None before homing."""
         return self._target
 
-    @property
-    def resend_count(self) -> int:
-        """Lines resent on the printer's request (transmission errors)."""
-        return self._link.resend_count if self._link else 0
-
-    @property
-    def resyncs(self) -> int:
-        """Line-number re-synchronisations (``M110``) after lost lines or desyncs."""
-        return self._link.resyncs if self._link else 0
-
-    @property
-    def extra_oks(self) -> int:
-        """``ok`` lines that answered no command (duplicated or late) and were dropped."""
-        return self._link.extra_oks if self._link else 0
-
-    @property
-    def garbage_lines(self) -> int:
-        """Unreadable lines received and skipped."""
-        return self._link.garbage_lines if self._link else 0
+    resend_count = _link_counter(
+        "resend_count", "Lines resent on the printer's request (transmission errors)."
+    )
+    resyncs = _link_counter(
+        "resyncs", "Line-number re-synchronisations (``M110``) after lost lines or desyncs."
+    )
+    extra_oks = _link_counter(
+        "extra_oks", "``ok`` lines that answered no command (duplicated or late) and were dropped."
+    )
+    garbage_lines = _link_counter("garbage_lines", "Unreadable lines received and skipped.")
 
     # --- motion -----------------------------------------------------------------------
     def home(self) -> Point:
