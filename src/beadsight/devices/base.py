@@ -19,6 +19,7 @@ so the CLI prints it as one line); its message starts with the device's name (e.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol, runtime_checkable
@@ -51,6 +52,17 @@ class DeviceNotConnectedError(DeviceError):
 
 class DeviceTimeoutError(DeviceError):
     """The device did not answer (or stopped streaming) within the allowed time."""
+
+
+def wait_or_time_out(
+    cond: threading.Condition, deadline: float, device: str, message: str, hint: str | None = None
+) -> None:
+    """Wait on ``cond`` (held by the caller) for news until ``deadline`` (``time.monotonic``);
+    once it has passed, raise :class:`DeviceTimeoutError` (``device``, ``message``, ``hint``)."""
+    remaining = deadline - time.monotonic()
+    if remaining <= 0:
+        raise DeviceTimeoutError(device, message, hint)
+    cond.wait(remaining)
 
 
 class SafetyError(DeviceError):

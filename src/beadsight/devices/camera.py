@@ -49,9 +49,9 @@ from beadsight.devices.base import (
     CameraEndedError,
     DeviceContext,
     DeviceNotConnectedError,
-    DeviceTimeoutError,
     Frame,
     host_now,
+    wait_or_time_out,
 )
 from beadsight.devices.clock import SimClock
 from beadsight.devices.reader import ReaderThread
@@ -352,14 +352,13 @@ class BufferedCamera(DeviceContext):
             raise DeviceNotConnectedError(
                 self.name, "not connected", "call connect() or use 'with'"
             )
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            raise DeviceTimeoutError(
-                self.name,
-                f"no new frame within {self._timeout(timeout_s):g} s (expected {self.fps:g} fps)",
-                "is the camera still plugged in and lit?",
-            )
-        self._cond.wait(remaining)
+        wait_or_time_out(
+            self._cond,
+            deadline,
+            self.name,
+            f"no new frame within {self._timeout(timeout_s):g} s (expected {self.fps:g} fps)",
+            "is the camera still plugged in and lit?",
+        )
 
     # --- reader thread ------------------------------------------------------------------
     def _run(self, stop: threading.Event) -> None:

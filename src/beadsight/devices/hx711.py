@@ -49,6 +49,7 @@ from beadsight.devices.base import (
     ScaleError,
     ScaleReading,
     host_now,
+    wait_or_time_out,
 )
 from beadsight.devices.scale_protocol import (
     SUPPORTED_RATES_HZ,
@@ -209,14 +210,13 @@ class HX711Scale(DeviceContext):
                     return latest
                 if self._error is not None:
                     raise self._error
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceTimeoutError(
-                        self.name,
-                        f"no reading for {timeout:g} s; the scale stopped streaming",
-                        "check the USB cable; reset the Arduino",
-                    )
-                self._cond.wait(remaining)
+                wait_or_time_out(
+                    self._cond,
+                    deadline,
+                    self.name,
+                    f"no reading for {timeout:g} s; the scale stopped streaming",
+                    "check the USB cable; reset the Arduino",
+                )
 
     def readings_since(self, t_mono: float) -> list[ScaleReading]:
         """Buffered readings with ``t_mono`` strictly after ``t_mono`` (oldest first); the
@@ -358,12 +358,12 @@ class HX711Scale(DeviceContext):
             while self.received - start < samples:
                 if self._error is not None:
                     raise self._error
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceTimeoutError(
-                        self.name, f"fewer than {samples} readings arrived for tare/calibration"
-                    )
-                self._cond.wait(remaining)
+                wait_or_time_out(
+                    self._cond,
+                    deadline,
+                    self.name,
+                    f"fewer than {samples} readings arrived for tare/calibration",
+                )
             return list(self._raw)[-samples:]
 
     # --- reader thread ------------------------------------------------------------------
