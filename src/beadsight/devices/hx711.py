@@ -208,12 +208,8 @@ class HX711Scale(DeviceContext):
                 latest = self._latest
                 if latest is not None and (after_mono is None or latest.t_mono > after_mono):
                     return latest
-                if self._error is not None:
-                    raise self._error
-                wait_or_time_out(
-                    self._cond,
+                self._wait_news(
                     deadline,
-                    self.name,
                     f"no reading for {timeout:g} s; the scale stopped streaming",
                     "check the USB cable; reset the Arduino",
                 )
@@ -350,19 +346,21 @@ class HX711Scale(DeviceContext):
                     return reply
                 logger.debug("%s: ignoring reply %r while waiting for %r", self.name, reply, expect)
 
+    def _wait_news(self, deadline: float, message: str, hint: str | None = None) -> None:
+        """Wait (``self._cond`` held) for the reader's next reading; raise the error that
+        stopped the reader, or DeviceTimeoutError(``message``, ``hint``) after ``deadline``."""
+        if self._error is not None:
+            raise self._error
+        wait_or_time_out(self._cond, deadline, self.name, message, hint)
+
     def _fresh_raw(self, samples: int) -> list[float]:
         """The next ``samples`` device readings (grams before host tare/gain)."""
         deadline = time.monotonic() + self.timeout_s + samples
         with self._cond:
             start = self.received
             while self.received - start < samples:
-                if self._error is not None:
-                    raise self._error
-                wait_or_time_out(
-                    self._cond,
-                    deadline,
-                    self.name,
-                    f"fewer than {samples} readings arrived for tare/calibration",
+                self._wait_news(
+                    deadline, f"fewer than {samples} readings arrived for tare/calibration"
                 )
             return list(self._raw)[-samples:]
 
