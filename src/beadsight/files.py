@@ -43,6 +43,17 @@ class OutputExistsError(BeadSightError):
     """An output would replace an existing file (or is a folder); names it and the fix."""
 
 
+class Closes:
+    """Used as a context manager, the object is ``close()``d when the block ends, however
+    it ends (a file opened for reading, a server, a predictor's runtime)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 class ClosesOrAborts:
     """A writer used as a context manager: ``close()`` when the block succeeds (the file
     gets its final name), ``abort()`` when it raises (nothing half-written is kept under

@@ -20,6 +20,7 @@ import numpy as np
 from beadsight.config import ContactThresholds, SensorGeometry
 from beadsight.data.presses import segment_presses
 from beadsight.errors import BeadSightError
+from beadsight.files import Closes
 from beadsight.geometry import force_to_newtons
 from beadsight.h5safe import find_dataset, open_h5
 
@@ -32,7 +33,7 @@ class DatasetError(BeadSightError, ValueError):
 
 
 @dataclass
-class Dataset:
+class Dataset(Closes):
     """An open dataset. Arrays are loaded; ``frames`` stays on disk (h5py dataset).
 
     frames: (N, H, W, 3) uint8 in ``channel_order`` ("RGB" or "BGR").
@@ -105,12 +106,6 @@ class Dataset:
 
     def close(self) -> None:
         self._file.close()
-
-    def __enter__(self) -> Dataset:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 # --- reading ------------------------------------------------------------------------

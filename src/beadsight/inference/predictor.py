@@ -73,6 +73,7 @@ from beadsight._compat import deprecated, renamed_attribute
 from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.config import ContactThresholds, SensorGeometry
 from beadsight.evaluation.metrics import otsu_masks
+from beadsight.files import Closes
 from beadsight.geometry import (
     centre_of_pressure_mm,
     contact_area_mm2,
@@ -167,7 +168,7 @@ def checkpoint_fps(model: PressureModel) -> float | None:
     return None
 
 
-class PressurePredictor:
+class PressurePredictor(Closes):
     """Stateful frame-by-frame pressure estimation.
 
     model: a loaded :class:`~beadsight.checkpoint.PressureModel`.
@@ -408,12 +409,6 @@ class PressurePredictor:
 
     def close(self) -> None:
         self.backend.close()
-
-    def __enter__(self) -> PressurePredictor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return (

@@ -42,6 +42,7 @@ import numpy as np
 from beadsight import __version__
 from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
+from beadsight.files import Closes
 from beadsight.h5safe import find_dataset, open_h5
 from beadsight.live.recorder import DISK_RESERVE_BYTES, PartialWriter
 
@@ -243,7 +244,7 @@ class ReadingsWriter(PartialWriter):
 
 
 @dataclass
-class ReadingsFile:
+class ReadingsFile(Closes):
     """An open readings file: scalar columns as numpy arrays, maps as an h5py dataset.
 
     ``pressure_kpa`` is read lazily: ``rf.pressure_kpa[i]`` -> (H, W) float32 kPa.
@@ -268,12 +269,6 @@ class ReadingsFile:
 
     def close(self) -> None:
         self._file.close()
-
-    def __enter__(self) -> ReadingsFile:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def open_readings(path: str | Path) -> ReadingsFile:

@@ -36,6 +36,7 @@ import numpy as np
 
 from beadsight import __version__
 from beadsight.config import SensorGeometry
+from beadsight.files import Closes
 from beadsight.live.config import DEFAULT_HOST
 from beadsight.live.config import STREAM_MAX_AGE_S as DEFAULT_MAX_AGE_S
 from beadsight.live.config import STREAM_PORT as DEFAULT_PORT
@@ -255,7 +256,7 @@ class _Client:
             self._thread.join()
 
 
-class StreamServer:
+class StreamServer(Closes):
     """Serve readings to TCP clients on ``host:port`` (port 0 = pick a free one).
 
     A :class:`beadsight.live.sensor.LiveListener`: ``sensor.add_listener(server)``. The
@@ -369,12 +370,6 @@ class StreamServer:
         deadline = time.monotonic() + CLOSE_GRACE_S
         for client in clients:
             client.join(deadline - time.monotonic())
-
-    def __enter__(self) -> StreamServer:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 class _Closed:

@@ -47,6 +47,7 @@ import cv2
 import numpy as np
 
 from beadsight.errors import BeadSightError, ConfigError
+from beadsight.files import Closes
 from beadsight.geometry import mm_to_px
 from beadsight.live.config import DEFAULT_HOST
 from beadsight.live.config import VIEWER_MAX_FPS as DEFAULT_MAX_FPS
@@ -126,7 +127,7 @@ def _ms(seconds: float) -> float | None:
     return _finite(seconds * 1e3, 2)
 
 
-class ViewerServer:
+class ViewerServer(Closes):
     """Serve the live viewer for ``sensor`` (a started :class:`beadsight.live.sensor.LiveSensor`).
 
     Binds ``host:port`` (port 0 = a free port) in the constructor and serves on background
@@ -207,12 +208,6 @@ class ViewerServer:
         self._thread.join()
         self.events.close()
         self._httpd.server_close()
-
-    def __enter__(self) -> ViewerServer:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     # --- listener interface (sensing thread: keep it cheap) -----------------------
     def push(self, update: Any) -> None:
