@@ -143,28 +143,16 @@ def test_evaluate_predict_and_live_defaults_are_the_library_defaults():
     from beadsight.live.stream import DEFAULT_PORT as STREAM_PORT
     from beadsight.live.viewer.server import ViewerServer
 
-    ev = inspect.signature(evaluate).parameters
+    def assert_defaults(args, function, *names: str) -> None:
+        defaults = inspect.signature(function).parameters
+        assert {n: getattr(args, n) for n in names} == {n: defaults[n].default for n in names}
+
     args = _parse("evaluate", "--checkpoint", "c", "--data", "d", "--out", "o")
-    assert (args.split, args.batch_size, args.device) == (
-        ev["split"].default,
-        ev["batch_size"].default,
-        ev["device"].default,
-    )
-    pr = inspect.signature(predict_recording).parameters
+    assert_defaults(args, evaluate, "split", "batch_size", "device")
     args = _parse("predict", "--checkpoint", "c", "--input", "i", "--out", "o")
-    assert (args.preprocess, args.batch_size, args.device) == (
-        pr["preprocess"].default,
-        pr["batch_size"].default,
-        pr["device"].default,
-    )
-    viewer = inspect.signature(ViewerServer).parameters
+    assert_defaults(args, predict_recording, "preprocess", "batch_size", "device")
     args = _parse("live")
-    assert (args.host, args.port, args.max_fps, args.max_kpa) == (
-        viewer["host"].default,
-        viewer["port"].default,
-        viewer["max_fps"].default,
-        viewer["max_kpa"].default,
-    )
+    assert_defaults(args, ViewerServer, "host", "port", "max_fps", "max_kpa")
     assert args.stream_port == STREAM_PORT
 
 
