@@ -31,7 +31,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from train_speed import DTYPES, make_step, sync  # sibling script (benchmarks/ is on sys.path)
+from train_speed import (  # sibling script (benchmarks/ is on sys.path)
+    DTYPES,
+    make_step,
+    samples_per_s,
+    sync,
+)
 
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import DatasetWriter, open_dataset
@@ -98,14 +103,8 @@ def loader_rate(loader: WindowLoader, max_batches: int, device: torch.device) ->
 
 def train_rate(batches: list, device: torch.device, precision: str, args) -> float:
     step = make_step(args, device, precision)
-    step(*batches[0])  # warm-up
-    sync(device)
-    start = time.perf_counter()
-    for frames, targets in batches[1 : 1 + args.train_steps]:
-        loss = step(frames, targets)
-    loss.item()
-    sync(device)
-    return args.train_steps * args.batch / (time.perf_counter() - start)
+    timed = batches[1 : 1 + args.train_steps]
+    return samples_per_s(step, batches[:1], timed, args.batch, device)
 
 
 def main() -> None:

@@ -88,22 +88,24 @@ def make_step(args, device: torch.device, precision: str):
     return step
 
 
-def train_rate(args, device: torch.device, precision: str) -> float:
-    frames, targets = make_batch(args, args.batch, device)
-    train_step = make_step(args, device, precision)
-
-    def step():
-        return train_step(frames, targets)
-
-    for _ in range(args.warmup):
-        step()
+def samples_per_s(step, warmup: list, timed: list, batch: int, device: torch.device) -> float:
+    """Training samples/s of ``step(frames, targets)`` over the ``timed`` (frames, targets)
+    batches of ``batch`` samples, after a step on each of the ``warmup`` ones."""
+    for frames, targets in warmup:
+        step(frames, targets)
     sync(device)
     start = time.perf_counter()
-    for _ in range(args.steps):
-        loss = step()
+    for frames, targets in timed:
+        loss = step(frames, targets)
     loss.item()
     sync(device)
-    return args.steps * args.batch / (time.perf_counter() - start)
+    return len(timed) * batch / (time.perf_counter() - start)
+
+
+def train_rate(args, device: torch.device, precision: str) -> float:
+    batch = make_batch(args, args.batch, device)
+    step = make_step(args, device, precision)
+    return samples_per_s(step, [batch] * args.warmup, [batch] * args.steps, args.batch, device)
 
 
 @torch.inference_mode()
