@@ -125,11 +125,15 @@ def stamp(h: Header) -> float:
     return h.stamp.sec + h.stamp.nanosec * 1e-9
 
 
+def _stamped(m) -> dict:
+    """The header of a stamped message: its time (s) and frame."""
+    return {"t": stamp(m.header), "frame": m.header.frame_id}
+
+
 def _image(m: Image) -> dict:
     data = bytes(m.data)
     return {
-        "t": stamp(m.header),
-        "frame": m.header.frame_id,
+        **_stamped(m),
         "enc": m.encoding,
         "h": m.height,
         "w": m.width,
@@ -143,8 +147,7 @@ def _image(m: Image) -> dict:
 def _wrench(m: WrenchStamped) -> dict:
     f, q = m.wrench.force, m.wrench.torque
     return {
-        "t": stamp(m.header),
-        "frame": m.header.frame_id,
+        **_stamped(m),
         "force": [f.x, f.y, f.z],
         "torque": [q.x, q.y, q.z],
     }
@@ -152,8 +155,7 @@ def _wrench(m: WrenchStamped) -> dict:
 
 def _diagnostics(m: DiagnosticArray) -> dict:
     return {
-        "t": stamp(m.header),
-        "frame": m.header.frame_id,
+        **_stamped(m),
         "status": [
             {
                 "level": s.level,
@@ -173,8 +175,7 @@ SUMMARIES = {
     "force": _wrench,
     "reference_force": _wrench,
     "cop": lambda m: {
-        "t": stamp(m.header),
-        "frame": m.header.frame_id,
+        **_stamped(m),
         "point": [m.point.x, m.point.y, m.point.z],
     },
     "contact_area": lambda m: {"area_m2": m.data},
