@@ -10,9 +10,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 import torch
-from conftest import make_press_arrays, synthetic_press_frames
+from synthetic_presses import make_press_arrays, synthetic_press_frames
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
@@ -168,15 +167,3 @@ def wait_until(predicate, timeout_s: float = 20.0, what: str = "condition") -> N
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         time.sleep(0.01)
-
-
-@pytest.fixture(autouse=True)
-def no_thread_leaks():
-    """Every test must stop all the threads it started (autouse where imported)."""
-    before = set(threading.enumerate())
-    yield
-    wait_until(
-        lambda: not [t for t in threading.enumerate() if t not in before and t.is_alive()],
-        10,
-        "threads of the test to end",
-    )

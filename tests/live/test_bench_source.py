@@ -6,10 +6,13 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from live_helpers import TORCH, no_thread_leaks, press_frames, tiny_model, write_video  # noqa: F401
+import pytest
+from live_helpers import TORCH, press_frames, tiny_model, write_video
 
 from beadsight.cli import main
 from beadsight.live.bench import bench_source
+
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 
 def test_duplicated_frames_of_a_video_file_are_counted(tmp_path):

@@ -17,10 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from browser_helpers import Beadsight
-from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+from live_helpers import (
     BACKEND,
-    TINY,
-    no_thread_leaks,
     press_frames,
     tiny_model,
     wait_until,
@@ -30,6 +28,8 @@ from publish_helpers import HEALTH_STATES, HealthTagger, PacedSource, live_witho
 from beadsight.cli import main
 from beadsight.live import ros_messages as msg
 from beadsight.live.sensor import LiveSensor
+
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 pytest.importorskip("foxglove", reason="the 'ros' extra is not installed")
 websockets_sync = pytest.importorskip("websockets.sync.client")

@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import threading
 
-from live_helpers import no_thread_leaks, wait_until  # noqa: F401  (autouse fixture)
+import pytest
+from live_helpers import wait_until
 from publish_helpers import Health
 
 from beadsight.live.listeners import LiveStatus
 from beadsight.live.publisher import BackgroundPublisher
+
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 
 class Recorder(BackgroundPublisher):

@@ -13,15 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+from live_helpers import (
     BACKEND,
     TINY,
     TORCH,
     WINDOW,
     ScriptedSource,
-    no_thread_leaks,
     press_frames,
-    tiny_model,
     wait_until,
 )
 
@@ -33,10 +31,7 @@ from beadsight.live.recorder import OutputExistsError
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.viewer.server import ViewerServer
 
-
-@pytest.fixture(scope="module")
-def model():
-    return tiny_model()
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 
 @pytest.fixture(scope="module")

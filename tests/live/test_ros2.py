@@ -21,9 +21,8 @@ import h5py
 import numpy as np
 import pytest
 from browser_helpers import Beadsight
-from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+from live_helpers import (
     BACKEND,
-    no_thread_leaks,
     press_frames,
     tiny_model,
     wait_until,
@@ -34,6 +33,8 @@ from beadsight.cli import main
 from beadsight.errors import BeadSightError
 from beadsight.live import ros_messages as msg
 from beadsight.live.sensor import LiveSensor
+
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 pytest.importorskip("cyclonedds", reason="the 'ros' extra is not installed")
 PEER = Path(__file__).with_name("ros2_peer.py")

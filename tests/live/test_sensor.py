@@ -13,7 +13,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
-from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+from live_helpers import (
     BACKEND,
     MODEL_ONLY,
     TINY,
@@ -22,9 +22,7 @@ from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture
     ScriptedSource,
     StatusLog,
     live_argv,
-    no_thread_leaks,
     press_frames,
-    tiny_model,
     wait_until,
     write_video,
 )
@@ -40,10 +38,7 @@ from beadsight.live.sources import frame_converter
 from beadsight.live.viewer.server import ViewerServer
 from beadsight.preprocess import FrameSizeError, Preprocessor
 
-
-@pytest.fixture(scope="module")
-def model():
-    return tiny_model()
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,9 @@ import warnings
 
 import numpy as np
 import pytest
-from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+from live_helpers import (
     BACKEND,
     WINDOW,
-    no_thread_leaks,
     press_frames,
     tiny_model,
     write_video,
@@ -21,6 +20,8 @@ from beadsight.devices import Camera, CameraEndedError, OpenCVCamera
 from beadsight.devices.virtual import PlaybackCamera, SimCamera, VirtualCamera
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.sources import open_camera
+
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 
 def test_source_specs_name_cameras(tmp_path):

@@ -14,15 +14,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
+from live_helpers import (
     BACKEND,
     TINY,
     TORCH,
     WINDOW,
     ScriptedSource,
-    no_thread_leaks,
     press_frames,
-    tiny_model,
     wait_until,
 )
 
@@ -31,12 +29,9 @@ from beadsight.errors import BeadSightError
 from beadsight.live.sensor import LiveSensor, LiveStatus
 from beadsight.live.stream import StreamServer, encode_reading
 
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
+
 CLIENT = Path(__file__).resolve().parents[2] / "examples" / "stream_client.py"
-
-
-@pytest.fixture(scope="module")
-def model():
-    return tiny_model()
 
 
 def read_message(stream) -> tuple[dict, bytes]:

@@ -10,24 +10,15 @@ import time
 from dataclasses import replace
 
 import pytest
-from live_helpers import (  # noqa: F401  (no_thread_leaks is an autouse fixture)
-    BACKEND,
-    TORCH,
-    no_thread_leaks,
-    tiny_model,
-    wait_until,
-)
+from live_helpers import TORCH, wait_until
 
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.viewer.http import host_allowed, host_name
 from beadsight.live.viewer.server import ViewerServer
 
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
+
 LOCAL = frozenset({"localhost", "127.0.0.1", "::1"})
-
-
-@pytest.fixture(scope="module")
-def model():
-    return tiny_model()
 
 
 def request(port: int, raw: bytes, timeout_s: float = 10.0) -> tuple[int, bytes]:
