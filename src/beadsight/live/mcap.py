@@ -35,11 +35,10 @@ import numpy as np
 from tqdm import tqdm
 
 from beadsight import __version__
-from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.live import ros_messages as msg
-from beadsight.live.readings import ReadingLike, open_readings
-from beadsight.live.recorder import DISK_RESERVE_BYTES, PartialWriter
+from beadsight.live.readings import open_readings
+from beadsight.live.recorder import PartialWriter, ReadingLike
 from beadsight.live.ros_messages import (
     FRAME_ID,  # noqa: F401 (importable from here, as before)
     image_message,
@@ -162,26 +161,18 @@ class McapReadingsWriter(PartialWriter):
     then ends properly after the last reading. Not thread-safe.
     """
 
-    def __init__(
-        self,
-        path: str | Path,
-        geometry: SensorGeometry,
-        provenance: dict[str, Any] | None = None,
-        *,
-        overwrite: bool = False,
-    ):
-        writer_cls, compression = _require_mcap()
-        self._begin(path, overwrite)
-        self.geometry = geometry
+    def _prepare(self) -> None:
+        self._writer_cls, self._compression = _require_mcap()
         self._stream: _CountedFile | None = None
         self._pending = 0  # most bytes of messages in the writer's open (unwritten) chunk
         self._chunks = 0  # chunks written (each adds an index entry to the summary)
-        self._guard(lambda: self._create(writer_cls, compression.ZSTD, provenance))
 
-    def _create(self, writer_cls: Any, compression: Any, provenance: dict | None) -> None:
+    def _create(self, provenance: dict | None) -> None:
         self._stream = _CountedFile(self.partial, exclusive=not self.overwrite)
         self._created = True
-        self._writer = writer_cls(self._stream, chunk_size=CHUNK_BYTES, compression=compression)
+        self._writer = self._writer_cls(
+            self._stream, chunk_size=CHUNK_BYTES, compression=self._compression.ZSTD
+        )
         self._schemas = {
             name: self._writer.register_msgdef(name, text)
             for name, text in MESSAGE_DEFINITIONS.items()
@@ -238,17 +229,8 @@ class McapReadingsWriter(PartialWriter):
             else:
                 self._pending += self._size(message)
 
-    def append(
-        self,
-        reading: ReadingLike,
-        reference_force_n: float = math.nan,
-        latency_s: float | None = None,
-    ) -> None:
-        """Write one reading's messages (``latency_s`` is accepted for interface parity).
-
-        Raises :class:`~beadsight.files.WriteError` once the disk is full.
-        """
-        self._check_open()
+    def _add(self, reading: ReadingLike, reference_force_n: float, latency_s: float | None) -> None:
+        """Write one reading's messages (``latency_s`` is accepted for interface parity)."""
         messages = self._messages(reading, reference_force_n)
         need = (
             self._pending
@@ -259,11 +241,9 @@ class McapReadingsWriter(PartialWriter):
         room = self._room()
         if need > room:
             self._written = self._count  # the clean stop below writes the open chunk
-            free_kib = (max(room, 0) + DISK_RESERVE_BYTES) // 1024
-            self._fail(f"disk full ({free_kib} KiB free, too little for the next reading)")
+            self._disk_full(room, "the next reading")
         t_ns = unix_ns(float(reading.timestamp_s))
         self._guard(lambda: self._write_messages(messages, t_ns))
-        self._count += 1
 
     def _close_file(self, flush: bool) -> None:
         stream, self._stream = self._stream, None

@@ -30,11 +30,10 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import h5py
 import numpy as np
@@ -44,7 +43,7 @@ from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.files import Closes
 from beadsight.h5safe import find_dataset, open_h5
-from beadsight.live.recorder import DISK_RESERVE_BYTES, PartialWriter
+from beadsight.live.recorder import PartialWriter, ReadingLike
 
 logger = logging.getLogger(__name__)
 
@@ -72,19 +71,6 @@ class ReadingsFileError(BeadSightError, ValueError):
     """A readings file is missing, malformed or of another format."""
 
 
-class ReadingLike(Protocol):
-    """What a recorder needs from a reading (``beadsight.inference.predictor.PressureReading`` has it)."""
-
-    pressure_kpa: np.ndarray
-    force_n: float
-    cop_mm: np.ndarray
-    has_contact: bool
-    contact_area_mm2: float
-    timestamp_s: float
-    latency_s: float
-    frame_index: int
-
-
 class ReadingsWriter(PartialWriter):
     """Append readings to an HDF5 file; ``with ReadingsWriter(path, geometry) as w: w.append(r)``.
 
@@ -95,17 +81,8 @@ class ReadingsWriter(PartialWriter):
     :mod:`beadsight.live.recorder`). Not thread-safe: call it from one thread.
     """
 
-    def __init__(
-        self,
-        path: str | Path,
-        geometry: SensorGeometry,
-        provenance: dict[str, Any] | None = None,
-        *,
-        overwrite: bool = False,
-    ):
-        self._begin(path, overwrite)
-        self.geometry = geometry
-        s = geometry.image_size_px
+    def _prepare(self) -> None:
+        s = self.geometry.image_size_px
         self._map_bytes = s * s * np.dtype(np.float32).itemsize + READING_OVERHEAD_BYTES
         self._scalar_chunk_bytes = sum(
             SCALAR_CHUNK_ROWS * np.dtype(dtype).itemsize * int(np.prod(shape))
@@ -114,7 +91,6 @@ class ReadingsWriter(PartialWriter):
         self._rows: list[dict[str, Any]] = []
         self._maps: list[np.ndarray] = []
         self._f: h5py.File | None = None
-        self._guard(lambda: self._create(provenance))
 
     def _create(self, provenance: dict[str, Any] | None) -> None:
         # no chunk cache: every write reaches the file at once, so a failure raises here
@@ -155,18 +131,8 @@ class ReadingsWriter(PartialWriter):
         self._ds["pressure_kpa"].attrs["unit"] = "kPa"
         self._f.flush()
 
-    def append(
-        self,
-        reading: ReadingLike,
-        reference_force_n: float = math.nan,
-        latency_s: float | None = None,
-    ) -> None:
-        """Buffer one reading; ``reading.pressure_kpa`` must be (S, S) with S = geometry size.
-
-        latency_s: capture -> reading available (default: ``reading.latency_s``).
-        Raises :class:`~beadsight.files.WriteError` once the disk is full.
-        """
-        self._check_open()
+    def _add(self, reading: ReadingLike, reference_force_n: float, latency_s: float | None) -> None:
+        """Buffer one reading; ``reading.pressure_kpa`` must be (S, S) with S = geometry size."""
         s = self.geometry.image_size_px
         pressure = np.asarray(reading.pressure_kpa, dtype=np.float32)
         if pressure.shape != (s, s):
@@ -186,7 +152,8 @@ class ReadingsWriter(PartialWriter):
             }
         )
         self._maps.append(pressure)
-        self._count += 1
+
+    def _after_add(self) -> None:
         if len(self._rows) >= FLUSH_EVERY:
             self._write_buffer()
 
@@ -208,8 +175,7 @@ class ReadingsWriter(PartialWriter):
         self._rows.clear()
         self._maps.clear()
         if fit < n:
-            free_kib = (max(room, 0) + DISK_RESERVE_BYTES) // 1024
-            self._fail(f"disk full ({free_kib} KiB free, too little for the next readings)")
+            self._disk_full(room, "the next readings")
 
     def _write_rows(self, n: int) -> None:
         start = self._written

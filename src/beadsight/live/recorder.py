@@ -20,12 +20,16 @@ button share, whatever the format (HDF5 readings file, MCAP).
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
+import numpy as np
+
+from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.files import (
     ClosesOrAborts,
@@ -71,18 +75,42 @@ def unique_recording_path(folder: str | Path, suffix: str = ".h5") -> Path:
     raise OutputExistsError(f"{folder}: no free name for a recording starting {stem}")
 
 
+class ReadingLike(Protocol):
+    """What a recorder needs from a reading (``beadsight.inference.predictor.PressureReading`` has it)."""
+
+    pressure_kpa: np.ndarray
+    force_n: float
+    cop_mm: np.ndarray
+    has_contact: bool
+    contact_area_mm2: float
+    timestamp_s: float
+    latency_s: float
+    frame_index: int
+
+
 class PartialWriter(ClosesOrAborts):
     """Base of the recording writers: the ``.partial`` file, refusing to replace files, and
     the clean stop on a full disk. Not thread-safe: call it from one thread.
 
-    A subclass calls :meth:`_begin` first, then creates ``self.partial`` (exclusively unless
-    ``self.overwrite``) and sets ``self._created``, adds to ``self._written`` the readings
-    that reached the file, and implements :meth:`_close_file` (close the file, first writing
-    what is buffered if ``flush``; may raise).
-    ``len(writer)`` counts the readings appended.
+    ``writer(path, geometry, provenance, overwrite=...)`` calls :meth:`_prepare` (set up the
+    writer's own state; may refuse, e.g. a missing package), refuses an existing ``path``,
+    then :meth:`_create` (create ``self.partial``, exclusively unless ``self.overwrite``, and
+    set ``self._created``). :meth:`append` counts each reading that :meth:`_add` took; a
+    subclass adds to ``self._written`` the readings that reached the file and implements
+    :meth:`_close_file` (close the file, first writing what is buffered if ``flush``; may
+    raise). ``len(writer)`` counts the readings appended.
     """
 
-    def _begin(self, path: str | Path, overwrite: bool) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        geometry: SensorGeometry,
+        provenance: dict[str, Any] | None = None,
+        *,
+        overwrite: bool = False,
+    ):
+        self.geometry = geometry
+        self._prepare()
         self.path = Path(path)
         self.overwrite = overwrite
         self.partial = check_recording_target(self.path, overwrite)
@@ -93,6 +121,41 @@ class PartialWriter(ClosesOrAborts):
         self._created = False  # this writer created self.partial
         with os_errors_as_write_errors(self.partial):
             self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._guard(lambda: self._create(provenance))
+
+    def _prepare(self) -> None:
+        """The writer's own state, before the file is created."""
+
+    def _create(self, provenance: dict[str, Any] | None) -> None:
+        raise NotImplementedError
+
+    def append(
+        self,
+        reading: ReadingLike,
+        reference_force_n: float = math.nan,
+        latency_s: float | None = None,
+    ) -> None:
+        """Record one reading: ``reference_force_n`` is the true force, N (NaN: unknown),
+        ``latency_s`` capture -> reading available (default: ``reading.latency_s``).
+
+        Raises :class:`~beadsight.files.WriteError` once the disk is full.
+        """
+        self._check_open()
+        self._add(reading, reference_force_n, latency_s)
+        self._count += 1
+        self._after_add()
+
+    def _add(self, reading: ReadingLike, reference_force_n: float, latency_s: float | None) -> None:
+        """Buffer or write one reading (``self._count`` readings came before it)."""
+        raise NotImplementedError
+
+    def _after_add(self) -> None:
+        """After the reading was counted: e.g. write a full buffer."""
+
+    def _disk_full(self, room: int, what: str) -> None:
+        """Stop cleanly: ``room`` (bytes, :meth:`_room`) is too little for ``what``."""
+        free_kib = (max(room, 0) + DISK_RESERVE_BYTES) // 1024
+        self._fail(f"disk full ({free_kib} KiB free, too little for {what})")
 
     def __len__(self) -> int:
         return self._count
