@@ -147,7 +147,7 @@ CALIBRATE_FLAGS = (
     ("presses", "use only this many presses (after --skip)", {"type": int, "metavar": "N"}),
     ("skip", "drop the first K presses (break-in)", {"metavar": "K"}),
     ("gain", "fit a per-sensor force gain on the training presses"),
-    ("layers", "layers to fine-tune: all, decoder, or none (alignment only)"),
+    ("layers", "layers to fine-tune: decoder (encoder fixed), all, or none (alignment only)"),
     ("lr", "peak learning rate (cosine schedule over the budget)"),
     ("batch_size", "windows per step"),
     ("augment", "augment with the 8 dihedral transforms (off: measured better for one pouch)"),

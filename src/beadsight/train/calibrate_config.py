@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from beadsight.config import DEVICE_CHOICES, ConfigError, _Serializable, require_paths
 
 DEFAULT_BUDGET_MIN = 10.0  # minutes for the whole calibration (evaluations included)
-LAYER_CHOICES = ("all", "decoder", "none")  # none: only the zero-press alignment
+LAYER_CHOICES = ("decoder", "all", "none")  # none: only the zero-press alignment
 CALIBRATION_SPLIT = (0.7, 0.1, 0.2)  # train / early stopping / test, by press
 MIN_PRESSES = 3  # one press each to train on, to stop early on and to test on
 RECOMMENDED_PRESSES = 10
@@ -34,7 +34,7 @@ class CalibrateConfig(_Serializable):
     presses: int | None = None  # use this many presses (after skip); None: all
     skip: int = 0  # drop the first presses (a new pouch's break-in)
     gain: bool = False  # fit a per-sensor force gain on the training presses
-    layers: str = "all"  # all | decoder | none (alignment only)
+    layers: str = "decoder"  # decoder (encoder fixed; measured best) | all | none (alignment)
     lr: float = 3e-4  # peak AdamW learning rate (cosine to lr_min over the budget)
     lr_min: float = 1e-5
     batch_size: int = 16
