@@ -79,7 +79,7 @@ def scratch(data: Path, out: Path, n: int, base, args) -> Path:
     return out / "best.pt"
 
 
-def one_pouch(p: int, args, base_path: Path) -> dict:
+def one_pouch(p: int, args, base_path: Path, save) -> dict:
     base = load_checkpoint(base_path)
     folder = args.out / f"pouch{p}"
     data = folder / "presses.h5"
@@ -91,6 +91,7 @@ def one_pouch(p: int, args, base_path: Path) -> dict:
         )  # fmt: skip
     test = np.arange(total - args.test_presses, total)
     result = {"zero-shot": scored(base, data, test, args.device), "calibrate": {}, "scratch": {}}
+    save(result)
     for n in args.counts:
         t0 = time.monotonic()
         cal = CalibrateConfig(
@@ -107,6 +108,7 @@ def one_pouch(p: int, args, base_path: Path) -> dict:
         result["scratch"][n] = scored(best, data, test, args.device)
         print(f"pouch {p}, {n} presses: calibrate {_short(result['calibrate'][n])}; "
               f"scratch {_short(result['scratch'][n])}", flush=True)  # fmt: skip
+        save(result)
     return result
 
 
@@ -169,11 +171,19 @@ def main() -> None:
     base_path = base_checkpoint(args.base)
     print(f"base {base_path}; {args.pouches} held-out pouches; counts {args.counts}; "
           f"budget {args.budget_min:g} min; {args.test_presses} test presses each", flush=True)  # fmt: skip
-    pouches = [one_pouch(p, args, base_path) for p in range(args.pouches)]
+    pouches: list[dict] = []
+
+    def save(current: dict) -> None:
+        """Write what is measured so far, so an interrupted run keeps its finished points."""
+        record = {"cpu": cpu_summary(), "args": {k: str(v) for k, v in vars(args).items()},
+                  "base": str(base_path), "pouches": [*pouches, current]}  # fmt: skip
+        path = args.out / "calibration_curve.json"
+        path.with_suffix(".partial").write_text(json.dumps(record, indent=2) + "\n")
+        path.with_suffix(".partial").replace(path)
+
+    for p in range(args.pouches):
+        pouches.append(one_pouch(p, args, base_path, save))
     print(table(pouches, args.counts))
-    record = {"cpu": cpu_summary(), "args": {k: str(v) for k, v in vars(args).items()},
-              "base": str(base_path), "pouches": pouches}  # fmt: skip
-    (args.out / "calibration_curve.json").write_text(json.dumps(record, indent=2) + "\n")
     plot(pouches, args.counts, args.out / "calibration_curve.png")
     print(f"wrote {args.out / 'calibration_curve.json'} and {args.out / 'calibration_curve.png'}")
 
