@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import signal
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +29,14 @@ def pytest_configure(config):
     """
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config):
+    """Keep a crash at interpreter exit diagnosable: pytest's own fault handler is switched off
+    before this, so a native library that crashes while Python shuts down (its threads, its
+    exit handlers) would end the run with a bare "Segmentation fault" and no stack."""
+    faulthandler.enable(file=sys.__stderr__, all_threads=True)
 
 
 @pytest.fixture
