@@ -6,6 +6,10 @@ mean and standard deviation, and the force error left once each press is divided
 by its own ratio (what a model that reads every press's stiffness right would
 score).
 
+``spatial-gain``: whether a gain map over the pad, fitted on a pouch's first presses,
+predicts the later presses' gains (it would, if the per-press error came from where on
+the pad the finger pressed).
+
 ``dropout-shift``: on contact windows of a dataset (optionally one split of a
 training run's split.json), the ratio of predicted to true total force with the
 model in evaluation mode and with its dropout on, each with and without the
@@ -15,6 +19,7 @@ different networks (dropout before instance norm shifts the output scale).
 Usage::
 
     .venv/bin/python benchmarks/force_gain.py press-gain --data test.h5 --eval eval/
+    .venv/bin/python benchmarks/force_gain.py spatial-gain --data p100.h5 --eval ev100/
     .venv/bin/python benchmarks/force_gain.py dropout-shift --checkpoint runs/s4/best.pt \\
         --data train.h5 --split-file runs/s4/split.json --split train
 """
@@ -37,28 +42,71 @@ from beadsight.geometry import total_force_n
 from beadsight.inference.machine import cpu_summary
 
 
-def press_gain(data: str, eval_dir: str) -> None:
+def _presses(data: str, eval_dir: str):
+    """(predicted, true force per frame, press id per frame, contact mask,
+    press ids, each press's gain = predicted / true force over its contact frames,
+    each press's mean finger position in mm)."""
     with h5py.File(f"{eval_dir}/predictions.h5", "r") as p:
         index, pred, true = p["index"][:], p["force_pred_n"][:], p["force_gt_n"][:]
     with open_dataset(data) as ds:
-        press = ds.press_id[index]
+        press, position = ds.press_id[index], ds.position_mm[index]
     contact = true > 0
-    corrected, gains = pred.copy(), []
-    for k in np.unique(press[contact]):
+    ids = np.unique(press[contact])
+    gains, xy = np.empty(len(ids)), np.empty((len(ids), 2))
+    for i, k in enumerate(ids):
         m = (press == k) & contact
-        gain = pred[m].sum() / true[m].sum()
-        gains.append(gain)
-        corrected[press == k] /= gain
+        gains[i] = pred[m].sum() / true[m].sum()
+        xy[i] = position[m].mean(axis=0)
+    return pred, true, press, contact, ids, gains, xy
 
-    def error(p: np.ndarray) -> float:
-        return 100 * np.abs(p - true)[contact].sum() / true[contact].sum()
 
-    g = np.array(gains)
+def _error(pred, true, mask) -> float:
+    return 100 * np.abs(pred - true)[mask].sum() / true[mask].sum()
+
+
+def _divided(pred, press, ids, scale) -> np.ndarray:
+    out = pred.copy()
+    for k, s in zip(ids, scale, strict=True):
+        out[press == k] /= s
+    return out
+
+
+def press_gain(data: str, eval_dir: str) -> None:
+    pred, true, press, contact, ids, g, _ = _presses(data, eval_dir)
     print(f"{len(g)} presses, {contact.sum()} contact frames")
     print(f"  per-press gain: mean {g.mean():.3f}, std {g.std():.3f}")
     print(
-        f"  force error {error(pred):.1f} %; each press divided by its gain {error(corrected):.1f} %"
+        f"  force error {_error(pred, true, contact):.1f} %; each press divided by its gain "
+        f"{_error(_divided(pred, press, ids, g), true, contact):.1f} %"
     )
+
+
+def spatial_gain(data: str, eval_dir: str, train_presses: int, sigmas_mm: list[float]) -> None:
+    """Can a force-gain map over the pad, fitted on the first presses, fix the later ones?
+    Each later press is divided by the Gaussian-kernel mean of the earlier presses' log gains
+    around its position (and, for comparison, by their overall mean or its own gain)."""
+    pred, true, press, contact, ids, g, xy = _presses(data, eval_dir)
+    train, test = ids < train_presses, ids >= train_presses
+    if not train.any() or not test.any():
+        sys.exit(f"spatial-gain: need presses below and from {train_presses} in {eval_dir}")
+    log_g = np.log(g[train])
+    mask = np.isin(press, ids[test]) & contact
+    n = int(test.sum())
+
+    def error(scale) -> float:
+        return _error(_divided(pred, press, ids[test], scale), true, mask)
+
+    print(f"presses 0-{train_presses - 1} fit, {n} later presses scored ({mask.sum()} frames):")
+    print(f"  no correction {error(np.ones(n)):.1f} %; "
+          f"one gain for the pouch {error(np.full(n, np.exp(log_g.mean()))):.1f} %; "
+          f"each press's own gain {error(g[test]):.1f} %")  # fmt: skip
+    for sigma in sigmas_mm:
+        d2 = ((xy[test, None, :] - xy[None, train, :]) ** 2).sum(-1)
+        w = np.exp(-d2 / (2 * sigma**2))
+        local = (w * log_g).sum(1) / np.maximum(w.sum(1), 1e-12)
+        r = np.corrcoef(local, np.log(g[test]))[0, 1]
+        print(f"  gain map, kernel {sigma:g} mm: {error(np.exp(local)):.1f} % "
+              f"(correlation of mapped and actual log gain {r:.2f})")  # fmt: skip
 
 
 @torch.no_grad()
@@ -93,6 +141,11 @@ def main() -> None:
     p = sub.add_parser("press-gain")
     p.add_argument("--data", required=True, help="the dataset that was evaluated")
     p.add_argument("--eval", required=True, help="the beadsight evaluate output folder")
+    m = sub.add_parser("spatial-gain")
+    m.add_argument("--data", required=True, help="the dataset that was evaluated")
+    m.add_argument("--eval", required=True, help="the beadsight evaluate output folder")
+    m.add_argument("--train-presses", type=int, default=30, help="presses that fit the map")
+    m.add_argument("--sigma-mm", type=float, nargs="+", default=[3.0, 6.0])
     d = sub.add_parser("dropout-shift")
     d.add_argument("--checkpoint", required=True)
     d.add_argument("--data", required=True)
@@ -105,6 +158,8 @@ def main() -> None:
     print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
     if args.command == "press-gain":
         press_gain(args.data, args.eval)
+    elif args.command == "spatial-gain":
+        spatial_gain(args.data, args.eval, args.train_presses, args.sigma_mm)
     else:
         dropout_shift(args)
 
