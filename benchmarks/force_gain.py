@@ -46,7 +46,10 @@ def _presses(data: str, eval_dir: str):
     """(predicted, true force per frame, press id per frame, contact mask,
     press ids, each press's gain = predicted / true force over its contact frames,
     each press's mean finger position in mm)."""
-    with h5py.File(f"{eval_dir}/predictions.h5", "r") as p:
+    predictions = Path(eval_dir) / "predictions.h5"
+    if not predictions.is_file():
+        sys.exit(f"{predictions}: not found; expected a 'beadsight evaluate --out' folder")
+    with h5py.File(predictions, "r") as p:
         index, pred, true = p["index"][:], p["force_pred_n"][:], p["force_gt_n"][:]
     with open_dataset(data) as ds:
         press, position = ds.press_id[index], ds.position_mm[index]
