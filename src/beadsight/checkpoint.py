@@ -40,7 +40,7 @@ from beadsight.geometry import PA_PER_KPA
 from beadsight.model import FramesToPressure, UNet, infer_model_config
 
 FORMAT = "beadsight-checkpoint"
-FORMAT_VERSION = 2  # 2: model "window" renamed "frames" (version 1 files still load)
+FORMAT_VERSION = 3  # 2: model "window" renamed "frames"; 3: rest-referenced models (model.rest_input)
 SHIPPED_MODEL = "sim_model.pt"  # the simulated-sensor model, in the package's assets folder
 BASE_MODEL = "base_model.pt"  # the any-pouch base model that `calibrate` fine-tunes (assets)
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
@@ -144,7 +144,15 @@ class PressureModel:
         """Consecutive frames one input window covers: ``(frames - 1) * frame_stride + 1``."""
         return self.meta.model.span
 
-    window = renamed_attribute("PressureModel", "window", "span")
+    @property
+    def rest(self) -> int:
+        """1 if the model's input starts with a rest image (rest-referenced), else 0."""
+        return int(self.meta.model.rest_input)
+
+    @property
+    def inputs(self) -> int:
+        """Images in one model input: ``rest`` + ``span``."""
+        return self.meta.model.inputs
 
     @property
     def image_size(self) -> int:
@@ -163,20 +171,24 @@ class PressureModel:
         return self
 
     def check_frames(self, frames: np.ndarray, what: str = "frames") -> None:
-        """Raise a ValueError naming ``what`` unless frames fit this model."""
+        """Raise a ValueError naming ``what`` unless frames fit this model: ``(inputs, H, W,
+        3)`` or ``(B, inputs, H, W, 3)`` uint8 RGB (the rest image first for a
+        rest-referenced model)."""
         shape = getattr(frames, "shape", None)
+        layout = "rest + span" if self.rest else "span"
         if shape is None or len(shape) not in (4, 5) or shape[-1] != 3:
             raise ValueError(
-                f"{what}: expected (span, H, W, 3) or (B, span, H, W, 3) RGB frames, got shape "
-                f"{shape}"
+                f"{what}: expected ({layout}, H, W, 3) or (B, {layout}, H, W, 3) RGB frames, "
+                f"got shape {shape}"
             )
         if frames.dtype != np.uint8:
             raise ValueError(f"{what}: expected dtype uint8 (0..255), got {frames.dtype}")
         t, h, w = shape[-4], shape[-3], shape[-2]
-        if t != self.span:
+        if t != self.inputs:
+            rest = "1 rest image + " if self.rest else ""
             raise ValueError(
                 f"{what}: window of {t} frames, but the checkpoint {self.source} expects "
-                f"span={self.span} (frames={self.frames}, frame_stride="
+                f"{rest}span={self.span} (frames={self.frames}, frame_stride="
                 f"{self.meta.model.frame_stride})"
             )
         if (h, w) != (self.image_size, self.image_size):
@@ -187,7 +199,9 @@ class PressureModel:
 
     @torch.inference_mode()
     def predict(self, frames: np.ndarray, batch_size: int = 16) -> np.ndarray:
-        """frames: (span, H, W, 3) or (B, span, H, W, 3) uint8 RGB, oldest first.
+        """frames: (inputs, H, W, 3) or (B, inputs, H, W, 3) uint8 RGB: for a
+        rest-referenced model the rest image first, then the window's ``span`` frames,
+        oldest first (:func:`beadsight.data.rest.with_rest` builds them).
 
         returns: (H, W) or (B, H, W) float32 kPa.
         """
@@ -434,7 +448,7 @@ def _check_meta(meta: CheckpointMeta, state: dict[str, torch.Tensor], path: Path
         if not isinstance(getattr(meta, key), dict):
             raise CheckpointError(f"{path}: {key} is not a JSON object")
     try:  # the shapes the metadata describes must be the weights' (before building them)
-        have = infer_model_config(state).to_dict()
+        have = infer_model_config(state, rest_input=meta.model.rest_input).to_dict()
     except (ValueError, IndexError) as e:
         raise CheckpointError(f"{path}: state_dict: {e}") from None
     for key, value in meta.model.to_dict().items():  # dropout and stride are not in the shapes

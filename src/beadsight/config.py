@@ -189,6 +189,7 @@ class ModelConfig(_Serializable):
     width: int = 16  # channels of the first encoder block; doubled at each level
     up_kernel: int = 1  # 1 = reference weights, 3 = the paper's text
     dropout: float = 0.2  # in every conv block but the last decoder block
+    rest_input: bool = False  # rest-referenced: the network also sees the pouch at rest (+3 channels)
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -207,6 +208,12 @@ class ModelConfig(_Serializable):
         """Consecutive camera frames one input covers: the newest, and ``frames - 1``
         more every ``frame_stride`` frames back (``frames`` when the stride is 1)."""
         return (self.frames - 1) * self.frame_stride + 1
+
+    @property
+    def inputs(self) -> int:
+        """Images in one model input: the rest image first (rest-referenced models), then
+        the ``span`` frames of the window."""
+        return self.span + int(self.rest_input)
 
 
 def require_paths(config: Any, *names: str) -> None:

@@ -2,10 +2,16 @@
 
 ``UNet`` is the reference network; its parameter names match the reference
 state_dicts (``C1.layer.0.weight`` ... ``pred.bias``). ``FramesToPressure`` adds
-the input handling (which frames of a window the network sees, normalisation) and the
-output scale, so a single module maps ``(B, span, H, W, 3)`` uint8 RGB frames to
-``(B, H, W)`` kPa and exports as one graph. It is the only place that input handling
-is written: every runtime and training step goes through its methods.
+the input handling (which frames of a window the network sees, the rest reference,
+normalisation) and the output scale, so a single module maps ``(B, inputs, H, W, 3)``
+uint8 RGB images to ``(B, H, W)`` kPa and exports as one graph. It is the only place
+that input handling is written: every runtime and training step goes through its methods.
+
+A *rest-referenced* model (``ModelConfig.rest_input``) reads pressure as the pouch's state
+relative to its unloaded self: its input starts with one image of the pouch at rest
+(the average of a few still, unloaded frames), followed by the window. The network sees
+the rest image and each seen frame's difference from it, so a steady load stays visible
+when the frames stop moving, and an unloaded pouch of any look reads as no change.
 """
 
 from __future__ import annotations
@@ -14,7 +20,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from beadsight._compat import renamed_attribute
 from beadsight.config import ModelConfig
 
 
@@ -62,7 +67,8 @@ class UpBlock(nn.Module):
 
 
 class UNet(nn.Module):
-    """Reference U-Net: (B, 3T, H, W) normalised frames -> (B, 1, H, W) >= 0.
+    """Reference U-Net: (B, C, H, W) normalised frames -> (B, 1, H, W) >= 0, where
+    C = 3T, or 3 (T + 1) for a rest-referenced model.
 
     H and W must be divisible by 8. The output is in units of the training
     target's scale (``FramesToPressure`` multiplies it back to kPa).
@@ -72,7 +78,7 @@ class UNet(nn.Module):
         super().__init__()
         self.config = config
         w, p = config.width, config.dropout
-        self.C1 = ConvBlock(3 * config.frames, w, p)
+        self.C1 = ConvBlock(3 * (config.frames + int(config.rest_input)), w, p)
         self.D1 = DownBlock(w)
         self.C2 = ConvBlock(w, 2 * w, p)
         self.D2 = DownBlock(2 * w)
@@ -98,10 +104,13 @@ class UNet(nn.Module):
         return F.relu(self.pred(y))  # (B, 1, H, W)
 
 
-def infer_model_config(state_dict: dict[str, torch.Tensor], dropout: float = 0.2) -> ModelConfig:
+def infer_model_config(
+    state_dict: dict[str, torch.Tensor], dropout: float = 0.2, rest_input: bool = False
+) -> ModelConfig:
     """Read frames (T), width and up-conv kernel from a U-Net state_dict's tensor shapes.
 
-    The frame stride is not in the weights: it is 1 here (reference checkpoints)."""
+    The frame stride and the rest input are not in the weights: this gives stride 1, and
+    takes ``rest_input`` as given (False for reference checkpoints)."""
     try:
         first = state_dict["C1.layer.0.weight"]  # (w, 3T, 3, 3)
         up = state_dict["U2.Up.weight"]  # (4w, 8w, k, k)
@@ -109,17 +118,25 @@ def infer_model_config(state_dict: dict[str, torch.Tensor], dropout: float = 0.2
         raise ValueError(f"not a BeadSight U-Net state_dict: missing {e.args[0]!r}") from None
     if first.shape[1] % 3:
         raise ValueError(f"C1.layer.0.weight has {first.shape[1]} input channels; expected 3*T")
+    frames = first.shape[1] // 3 - int(rest_input)
+    if frames < 1:
+        raise ValueError(f"C1.layer.0.weight has {first.shape[1]} input channels; too few for rest")
     return ModelConfig(
-        frames=first.shape[1] // 3, width=first.shape[0], up_kernel=up.shape[-1], dropout=dropout
+        frames=frames,
+        width=first.shape[0],
+        up_kernel=up.shape[-1],
+        dropout=dropout,
+        rest_input=rest_input,
     )
 
 
 class FramesToPressure(nn.Module):
     """uint8 RGB frame windows -> kPa maps, with the input handling inside the module.
 
-    frames: (B, span, H, W, 3) uint8 RGB, oldest frame first, span =
-    ``config.span``: the network sees ``config.frames`` of them, every
-    ``frame_stride``-th counted back from the newest (:meth:`seen`).
+    images: (B, inputs, H, W, 3) uint8 RGB: for a rest-referenced model the rest image
+    first, then the window's ``span`` frames, oldest first (``inputs = span + rest``).
+    The network sees ``config.frames`` of the window, every ``frame_stride``-th counted
+    back from the newest (:meth:`seen`).
     returns: (B, H, W) float32 kPa.
 
     ``channel_order`` is the order the network was trained on ("RGB" or "BGR");
@@ -129,7 +146,7 @@ class FramesToPressure(nn.Module):
     The steps, for runtimes that keep normalised frames between calls::
 
         x = module.normalize_frames(frames)  # each frame once: (B, N, 3, H, W)
-        y = module.pressure(module.stack(x))  # a window of span frames -> (B, H, W) kPa
+        y = module.pressure(module.stack(x))  # one input of ``inputs`` images -> (B, H, W) kPa
     """
 
     def __init__(
@@ -161,7 +178,15 @@ class FramesToPressure(nn.Module):
         """Consecutive frames one input window covers (oldest first)."""
         return self.net.config.span
 
-    window = renamed_attribute("FramesToPressure", "window", "span")
+    @property
+    def rest(self) -> int:
+        """1 if the input starts with a rest image (rest-referenced model), else 0."""
+        return int(self.net.config.rest_input)
+
+    @property
+    def inputs(self) -> int:
+        """Images in one input: ``rest`` + ``span``."""
+        return self.net.config.inputs
 
     def seen(self, window: torch.Tensor) -> torch.Tensor:
         """(B, span, ...) -> (B, T, ...): the frames the network sees, the newest included."""
@@ -176,13 +201,35 @@ class FramesToPressure(nn.Module):
         return x.permute(0, 1, 4, 2, 3)
 
     def stack(self, normalized: torch.Tensor) -> torch.Tensor:
-        """(B, span, 3, H, W) normalised frames -> (B, 3T, H, W) network input,
-        channel k = 3t + c over the frames the network sees."""
-        return self.seen(normalized).flatten(1, 2)
+        """(B, inputs, 3, H, W) normalised images -> (B, C, H, W) network input.
 
-    def normalize(self, frames: torch.Tensor) -> torch.Tensor:
-        """(B, span, H, W, 3) uint8 RGB -> (B, 3T, H, W) float32 network input."""
-        return self.normalize_frames(self.seen(frames)).flatten(1, 2)  # only the T seen
+        Without rest: channel k = 3t + c over the T frames the network sees (C = 3T).
+        With rest: the rest image's 3 channels, then each seen frame minus the rest
+        image (C = 3 + 3T)."""
+        if not self.rest:
+            return self.stack_window(normalized)
+        return self.stack_window(normalized[:, 1:], normalized[:, :1])
+
+    def stack_window(self, window: torch.Tensor, rest: torch.Tensor | None = None) -> torch.Tensor:
+        """:meth:`stack` with the rest image apart: window (B, span, 3, H, W) and, for a
+        rest-referenced model, rest (B, 1, 3, H, W), normalised -> (B, C, H, W)."""
+        if rest is None:
+            return self.seen(window).flatten(1, 2)  # (B, 3T, H, W)
+        return self._relative(rest, self.seen(window))
+
+    def normalize(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, inputs, H, W, 3) uint8 RGB -> (B, C, H, W) float32 network input
+        (only the images the network sees are normalised)."""
+        if not self.rest:
+            return self.normalize_frames(self.seen(images)).flatten(1, 2)  # only the T seen
+        rest = self.normalize_frames(images[:, :1])  # (B, 1, 3, H, W)
+        return self._relative(rest, self.normalize_frames(self.seen(images[:, 1:])))
+
+    @staticmethod
+    def _relative(rest: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+        """rest (B, 1, 3, H, W), seen (B, T, 3, H, W) normalised -> (B, 3 + 3T, H, W):
+        the rest image, then each seen frame's change from it."""
+        return torch.cat([rest, seen - rest], dim=1).flatten(1, 2)
 
     def pressure(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 3T, H, W) network input -> (B, H, W) kPa."""

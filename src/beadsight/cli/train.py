@@ -21,6 +21,17 @@ TRAIN_FLAGS = (
     ("skip_presses", "drop the dataset's first presses (a new pouch's break-in)"),
     ("train_layers", "all, or decoder (the encoder stays as initialised)"),
     ("augment", "no dihedral augmentation"),
+    (
+        "rest_input",
+        "rest-referenced model: it also sees an image of the unloaded pouch (pressure is "
+        "the change from rest, so a steady load keeps its reading)",
+    ),
+    (
+        "color_jitter",
+        "random colour, contrast and brightness changes of each training input, 0..1 "
+        "(for models meant for pouches of other looks)",
+        {"type": float},
+    ),
     ("batch_size", "windows per step over all processes"),
     ("lr", "AdamW learning rate"),
     ("lr_schedule", "constant, or cosine: decay from --lr to --lr-min over the run's steps"),

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from beadsight.config import DEFAULT_SPLIT_FRACTIONS as DEFAULT_FRACTIONS
+from beadsight.data.rest import rest_ends
 from beadsight.data.timing import frame_breaks
 
 if TYPE_CHECKING:
@@ -88,12 +89,19 @@ def window_ends(
     return ends.astype(np.int64)
 
 
-def dataset_window_ends(ds: Dataset, span: int, presses: np.ndarray | None = None) -> np.ndarray:
+def dataset_window_ends(
+    ds: Dataset, span: int, presses: np.ndarray | None = None, rest: bool = False
+) -> np.ndarray:
     """:func:`window_ends` of dataset ``ds``, broken where its timestamps show dropped frames.
+    rest: only windows with a rest image before them (:func:`beadsight.data.rest.rest_ends`),
+    as a rest-referenced model needs.
 
     Training and evaluation select their frames through this one function."""
     breaks = frame_breaks(ds.timestamp_s, ds.fps)
-    return window_ends(ds.press_id, ds.valid, span, presses, breaks)
+    ends = window_ends(ds.press_id, ds.valid, span, presses, breaks)
+    if rest:
+        ends = ends[rest_ends(ds.force_n, ds.valid)[ends] >= 0]
+    return ends
 
 
 def valid_frames(ds: Dataset, presses: np.ndarray | None = None) -> np.ndarray:

@@ -2,13 +2,14 @@
 
 A backend runs one checkpoint's :class:`~beadsight.model.FramesToPressure` on numpy
 windows, statelessly (:meth:`Backend.run`) or streaming (:meth:`Backend.run_incremental`).
+A rest-referenced model's input starts with the rest image; streaming takes the rest
+image apart from the window, so runtimes that keep state prepare it once per change.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from beadsight._compat import renamed_attribute
 from beadsight.checkpoint import PressureModel
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.inference.config import BACKENDS, PRECISIONS
@@ -28,7 +29,8 @@ class Backend:
     """Runs one checkpoint's FramesToPressure on numpy windows.
 
     Subclasses implement :meth:`_run`; ``name`` and ``precision`` describe them.
-    ``span``: frames per window; ``frames``: how many of them the network sees.
+    ``span``: frames per window; ``frames``: how many of them the network sees;
+    ``rest``: 1 if the input starts with a rest image; ``inputs``: rest + span.
     """
 
     name = "base"
@@ -40,31 +42,60 @@ class Backend:
         self.precision = precision
         self.span = model.span
         self.frames = model.frames
+        self.rest = model.rest
+        self.inputs = model.inputs
         self.image_size = model.image_size
-        self._shape = (1, self.span, self.image_size, self.image_size, 3)
-
-    window = renamed_attribute("Backend", "window", "span")
+        self._shape = (1, self.inputs, self.image_size, self.image_size, 3)
 
     def describe(self) -> str:
         return f"{self.name}/{self.precision}"
 
-    def _check(self, window: np.ndarray) -> None:
-        if getattr(window, "shape", None) != self._shape or window.dtype != np.uint8:
+    def _check(self, images: np.ndarray, shape: tuple[int, ...] | None = None) -> None:
+        shape = shape or self._shape
+        if getattr(images, "shape", None) != shape or images.dtype != np.uint8:
+            what = (
+                "images (rest image + window)" if self.rest and shape == self._shape else "window"
+            )
             raise ValueError(
-                f"window: expected {self._shape} uint8 RGB, got "
-                f"{getattr(window, 'shape', None)} {getattr(window, 'dtype', type(window))}"
+                f"{what}: expected {shape} uint8 RGB, got "
+                f"{getattr(images, 'shape', None)} {getattr(images, 'dtype', type(images))}"
             )
 
-    def run(self, window: np.ndarray) -> np.ndarray:
-        """window: (1, span, S, S, 3) uint8 RGB, oldest first -> (1, S, S) float32 kPa."""
-        self._check(window)
-        return self._run(np.ascontiguousarray(window))
+    def _check_rest(self, rest: np.ndarray | None) -> None:
+        if not self.rest:
+            if rest is not None:
+                raise ValueError("rest: this model is not rest-referenced; pass no rest image")
+            return
+        s = self.image_size
+        if rest is None:
+            raise ValueError(
+                "rest: this model is rest-referenced and needs a rest image of the unloaded "
+                f"pouch, ({s}, {s}, 3) uint8 RGB"
+            )
+        if getattr(rest, "shape", None) != (s, s, 3) or rest.dtype != np.uint8:
+            raise ValueError(
+                f"rest: expected ({s}, {s}, 3) uint8 RGB, got {getattr(rest, 'shape', None)} "
+                f"{getattr(rest, 'dtype', type(rest))}"
+            )
 
-    def run_incremental(self, window: np.ndarray, new_frames: int) -> np.ndarray:
-        """Like :meth:`run`, where only the last ``new_frames`` frames of ``window``
-        differ from the previous call's window shifted by ``new_frames`` (``>= span``:
-        all new). Stateless backends just call :meth:`run`."""
-        return self.run(window)
+    def run(self, images: np.ndarray) -> np.ndarray:
+        """images: (1, inputs, S, S, 3) uint8 RGB (a rest-referenced model's rest image
+        first, then the window oldest first) -> (1, S, S) float32 kPa."""
+        self._check(images)
+        return self._run(np.ascontiguousarray(images))
+
+    def run_incremental(
+        self, window: np.ndarray, new_frames: int, rest: np.ndarray | None = None
+    ) -> np.ndarray:
+        """window: (1, span, S, S, 3) uint8 RGB, oldest first, where only the last
+        ``new_frames`` frames differ from the previous call's window shifted by
+        ``new_frames`` (``>= span``: all new); rest: the (S, S, 3) uint8 RGB rest image
+        (rest-referenced models only). Stateless backends just call :meth:`run`."""
+        self._check(window, (1, self.span, *self._shape[2:]))
+        self._check_rest(rest)
+        if rest is None:
+            return self.run(window)
+        return self.run(np.concatenate([rest[None, None], window], axis=1))
 
     def _run(self, window: np.ndarray) -> np.ndarray:
         raise NotImplementedError

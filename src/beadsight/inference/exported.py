@@ -1,7 +1,9 @@
 """The exported-model file format: ONNX and OpenVINO IR files with beadsight metadata.
 
 An exported graph is the whole :class:`~beadsight.model.FramesToPressure` module: input
-``frames`` (B, span, S, S, 3) uint8 RGB, oldest frame first; output ``pressure_kpa``
+``frames`` (B, inputs, S, S, 3) uint8 RGB: for a rest-referenced model (``rest_input``
+in the model config) the rest image first, then the window's span frames, oldest first;
+output ``pressure_kpa``
 (B, S, S) float32 kPa (the batch axis is dynamic). The checkpoint's metadata travels
 inside the file (ONNX ``metadata_props``, OpenVINO ``rt_info`` under ``beadsight``):
 
@@ -85,12 +87,13 @@ def _legacy_fingerprints(model: PressureModel) -> set[str]:
 
 def exported_metadata(model: PressureModel, precision: str = "fp32") -> dict[str, str]:
     """The key -> string metadata stored in exported files."""
-    n, s = model.span, model.image_size
+    n, s = model.inputs, model.image_size
+    layout = "the rest image, then the window oldest first" if model.rest else "oldest first"
     return {
         META_KEY: model.meta.to_json(),
         FINGERPRINT_KEY: model_fingerprint(model),
         "beadsight_version": __version__,
-        "beadsight_input": f"{INPUT_NAME}: (B, {n}, {s}, {s}, 3) uint8 RGB 0..255, oldest first",
+        "beadsight_input": f"{INPUT_NAME}: (B, {n}, {s}, {s}, 3) uint8 RGB 0..255, {layout}",
         "beadsight_output": f"{OUTPUT_NAME}: (B, {s}, {s}) float32 kPa",
         PRECISION_KEY: precision,
     }
@@ -142,7 +145,7 @@ def _onnx_proto(model: PressureModel, precision: str):
     """The model's module as an ONNX ModelProto carrying the metadata."""
     onnx = require("onnx", "export")
     module, device = model.module, model.device
-    shape = (1, model.span, model.image_size, model.image_size, 3)
+    shape = (1, model.inputs, model.image_size, model.image_size, 3)
     buffer = io.BytesIO()
     module.to("cpu")
     try:

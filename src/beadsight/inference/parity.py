@@ -74,8 +74,9 @@ class ParityResult:
 def _press_probe(
     model: PressureModel, rng: np.random.Generator, centre_px: tuple[float, float]
 ) -> np.ndarray:
-    """A textured window with a dark disk deepening over time, like a finger press."""
-    n, s = model.span, model.image_size
+    """A textured window with a dark disk deepening over time, like a finger press
+    (``model.inputs`` images: a rest-referenced model's rest image is the undented first)."""
+    n, s = model.inputs, model.image_size
     mean = np.asarray(model.meta.pixel_mean, dtype=np.float64)
     std = np.asarray(model.meta.pixel_std, dtype=np.float64)
     if model.meta.channel_order == "BGR":
@@ -91,7 +92,7 @@ def _press_probe(
 
 
 def probe_windows(model: PressureModel, seed: int = PROBE_SEED) -> np.ndarray:
-    """(K, span, S, S, 3) uint8 RGB windows the parity check runs on.
+    """(K, inputs, S, S, 3) uint8 RGB model inputs the parity check runs on.
 
     A synthetic press (textured frames at the checkpoint's pixel statistics with
     a darkening finger disk, at the centre and off-centre) and uniform noise:
@@ -99,7 +100,7 @@ def probe_windows(model: PressureModel, seed: int = PROBE_SEED) -> np.ndarray:
     training data that stress a reduced precision.
     """
     rng = np.random.default_rng(seed)
-    n, s = model.span, model.image_size
+    n, s = model.inputs, model.image_size
     offset = s / 4
     return np.stack(
         [
@@ -111,7 +112,7 @@ def probe_windows(model: PressureModel, seed: int = PROBE_SEED) -> np.ndarray:
 
 
 def probe_window(model: PressureModel, seed: int = PROBE_SEED) -> np.ndarray:
-    """The (1, span, S, S, 3) probe window whose fp32 torch map peaks highest."""
+    """The (1, inputs, S, S, 3) probe input whose fp32 torch map peaks highest."""
     windows = probe_windows(model, seed)
     return windows[peak_index(model.predict(windows, batch_size=1))][None]
 
@@ -130,7 +131,7 @@ def check_parity(
 ) -> ParityResult:
     """Compare ``backend.run`` with fp32 torch (``model.predict``), window by window.
 
-    windows: (K, span, S, S, 3) uint8 RGB (default :func:`probe_windows`); expected:
+    windows: (K, inputs, S, S, 3) uint8 RGB (default :func:`probe_windows`); expected:
     their (K, S, S) fp32 maps if already computed. Each window is judged against
     its own peak; the result is the worst one (largest error / tolerance).
     """

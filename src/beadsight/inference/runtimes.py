@@ -3,7 +3,8 @@
 Every runtime ("backend") runs the whole :class:`~beadsight.model.FramesToPressure`
 module (input handling included) and has the same numpy interface::
 
-    backend.run(window)  # (1, span, S, S, 3) uint8 RGB, oldest first -> (1, S, S) float32 kPa
+    backend.run(images)  # (1, inputs, S, S, 3) uint8 RGB -> (1, S, S) float32 kPa
+    # images: a rest-referenced model's rest image first, then the window oldest first
 
 The returned array belongs to the caller. :meth:`Backend.run_incremental` is the
 streaming form used by :class:`~beadsight.inference.predictor.PressurePredictor`: it is
@@ -111,6 +112,8 @@ class TorchBackend(Backend):
         # normalised frames, each twice (slots i and i + span): (1, 2 span, 3, S, S)
         self._ring = torch.zeros((1, 2 * n, 3, s, s), dtype=torch.float32, device=self.device)
         self._head = -1  # ring slot of the newest normalised frame, in [0, span)
+        self._rest: np.ndarray | None = None  # the rest image last normalised ...
+        self._rest_x: torch.Tensor | None = None  # ... and it normalised: (1, 1, 3, S, S)
 
     def _autocast(self):
         if self.precision == "bf16":
@@ -135,17 +138,31 @@ class TorchBackend(Backend):
         self._ring[:, head + n] = self._ring[:, head]
         self._head = head
 
+    def _normalized_rest(self, rest: np.ndarray | None) -> torch.Tensor | None:
+        """The rest image normalised, redone only when it changes."""
+        if rest is None:
+            return None
+        if self._rest is not rest and not np.array_equal(self._rest, rest):
+            x = torch.from_numpy(np.ascontiguousarray(rest)).to(self.device)[None, None]
+            self._rest_x = self.module.normalize_frames(x)  # (1, 1, 3, S, S)
+        self._rest = rest
+        return self._rest_x
+
     @torch.inference_mode()
-    def run_incremental(self, window: np.ndarray, new_frames: int) -> np.ndarray:
-        self._check(window)
+    def run_incremental(
+        self, window: np.ndarray, new_frames: int, rest: np.ndarray | None = None
+    ) -> np.ndarray:
         n = self.span
+        self._check(window, (1, n, *self._shape[2:]))
+        self._check_rest(rest)
         if self._head < 0:
             new_frames = n
         for k in range(n - min(int(new_frames), n), n):
             self._push(window[0, k])
         view = self._ring[:, self._head + 1 : self._head + 1 + n]  # (1, span, 3, S, S)
+        x = self.module.stack_window(view, self._normalized_rest(rest))
         with self._autocast():
-            return self._output(self.module.pressure(self.module.stack(view)))
+            return self._output(self.module.pressure(x))
 
 
 class CompileBackend(Backend):
@@ -352,6 +369,9 @@ class CudaGraphBackend(Backend):
         self.module = _torch_module(model, self.device)
         n, s = self.span, self.image_size
         self._ring = torch.zeros((1, 2 * n, s, s, 3), dtype=torch.uint8, device=self.device)
+        # the rest image (rest-referenced models): (1, 1, S, S, 3), and the array it holds
+        self._rest = torch.zeros((1, self.rest, s, s, 3), dtype=torch.uint8, device=self.device)
+        self._rest_src: np.ndarray | None = None
         self._head = n - 1
         self._streaming = False  # True while the ring holds the stream's last span frames
         pin = self.device.type == "cuda"
@@ -374,8 +394,10 @@ class CudaGraphBackend(Backend):
         return stack
 
     def _forward(self, head: int) -> torch.Tensor:
+        window = self._ring[:, head + 1 : head + 1 + self.span]
+        images = torch.cat([self._rest, window], dim=1) if self.rest else window
         with self._context():
-            return self.module(self._ring[:, head + 1 : head + 1 + self.span]).float()
+            return self.module(images).float()
 
     @torch.inference_mode()
     def _capture(self) -> None:
@@ -423,15 +445,29 @@ class CudaGraphBackend(Backend):
         self._ring[0, n:] = x
         self._head = n - 1
 
+    def _set_rest(self, rest: np.ndarray | None) -> None:
+        """Copy the (S, S, 3) rest image to the device when it changed."""
+        if rest is not None and self._rest_src is not rest:
+            if self._rest_src is None or not np.array_equal(self._rest_src, rest):
+                self._rest[0, 0] = torch.from_numpy(np.ascontiguousarray(rest)).to(self.device)
+            self._rest_src = rest
+
     @torch.inference_mode()
-    def _run(self, window: np.ndarray) -> np.ndarray:
-        self._load(window)
+    def _run(self, images: np.ndarray) -> np.ndarray:
+        if self.rest:
+            self._rest[0, 0] = torch.from_numpy(images[0, 0]).to(self.device)
+            self._rest_src = None
+        self._load(images[:, self.rest :])
         self._streaming = False  # the ring no longer holds the stream's frames
         return self._compute()
 
     @torch.inference_mode()
-    def run_incremental(self, window: np.ndarray, new_frames: int) -> np.ndarray:
-        self._check(window)
+    def run_incremental(
+        self, window: np.ndarray, new_frames: int, rest: np.ndarray | None = None
+    ) -> np.ndarray:
+        self._check(window, (1, self.span, *self._shape[2:]))
+        self._check_rest(rest)
+        self._set_rest(rest)
         if new_frames >= self.span or not self._streaming:
             self._load(np.ascontiguousarray(window))
         elif new_frames > 0:

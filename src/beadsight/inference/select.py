@@ -129,7 +129,7 @@ def _write_choice(cache_dir: Path | None, key: str, choice: dict[str, Any]) -> N
 class _Probe:
     """The probe windows, their fp32 torch maps, and the window timing runs on."""
 
-    windows: np.ndarray  # (K, span, S, S, 3) uint8 RGB
+    windows: np.ndarray  # (K, inputs, S, S, 3) uint8 RGB
     expected: np.ndarray  # (K, S, S) float32 kPa
 
     @classmethod

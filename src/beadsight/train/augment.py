@@ -1,5 +1,6 @@
-"""The dihedral (D4) augmentation: the 8 symmetries of the square, applied identically
-to every frame of a training window and to its target map."""
+"""Training augmentation: the dihedral (D4) transforms, the 8 symmetries of the square,
+applied identically to every frame of a training window and to its target map; and
+colour jitter, one random colour change per window (rest image included)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from beadsight.config import ConfigError
 
 D4_ORDER = 8  # rotations by 0/90/180/270 degrees, each with and without a mirror
 
-__all__ = ["D4_ORDER", "d4_batch", "d4_transform", "index_on"]
+__all__ = ["D4_ORDER", "color_jitter", "d4_batch", "d4_transform", "index_on"]
 
 
 def d4_transform(x, k: int, axes: tuple[int, int] = (0, 1)):
@@ -65,3 +66,37 @@ def index_on(device: torch.device, index: np.ndarray | torch.Tensor) -> torch.Te
     if device.type == "cuda" and idx.device.type == "cpu":
         return idx.pin_memory().to(device, non_blocking=True)
     return idx.to(device)
+
+
+# Colour augmentation at strength 1 (``TrainConfig.color_jitter``); each scales linearly.
+JITTER_GAIN = 0.4  # per-channel gain: exp(+-0.4) = x0.67 .. x1.49
+JITTER_CONTRAST = 0.5  # contrast about the image mean: exp(+-0.5) = x0.61 .. x1.65
+JITTER_BRIGHTNESS = 30.0  # brightness offset, +- levels of 0..255
+JITTER_SHUFFLE_P = 0.5  # chance of a random channel order (a bead colour becomes another)
+JITTER_GRAY_P = 0.15  # chance of a gray image (monochrome beads)
+
+
+def color_jitter(images: torch.Tensor, strength: float) -> torch.Tensor:
+    """(B, N, H, W, 3) uint8 RGB -> (B, N, H, W, 3) float32 0..255 with one random colour
+    change per sample, the same for all N images of it (window and rest alike): channel
+    order, gray, per-channel gain, contrast and brightness. Draws from torch's global RNG.
+    ``strength`` 0 returns the images as float unchanged."""
+    x = images.to(torch.float32)
+    if strength <= 0:
+        return x
+    b, dev = x.shape[0], x.device
+
+    def uniform(*shape: int) -> torch.Tensor:
+        return (torch.rand(*shape, device=dev) * 2 - 1) * strength
+
+    perm = torch.stack([torch.randperm(3, device=dev) for _ in range(b)])  # (B, 3)
+    keep = torch.rand(b, device=dev) >= JITTER_SHUFFLE_P * min(strength, 1.0)
+    perm[keep] = torch.arange(3, device=dev)
+    x = torch.gather(x, -1, perm.view(b, 1, 1, 1, 3).expand_as(x))
+    gray = torch.rand(b, device=dev) < JITTER_GRAY_P * min(strength, 1.0)
+    x = torch.where(gray.view(b, 1, 1, 1, 1), x.mean(-1, keepdim=True).expand_as(x), x)
+    x = x * torch.exp(JITTER_GAIN * uniform(b, 1, 1, 1, 3))
+    mean = x.mean(dim=(1, 2, 3, 4), keepdim=True)
+    x = (x - mean) * torch.exp(JITTER_CONTRAST * uniform(b, 1, 1, 1, 1)) + mean
+    x = x + JITTER_BRIGHTNESS * uniform(b, 1, 1, 1, 1)
+    return x.clamp_(0.0, 255.0)

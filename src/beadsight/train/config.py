@@ -53,11 +53,13 @@ RESUME_FIXED_FIELDS = (
     "skip_presses",
     "train_layers",
     "augment",
+    "rest_input",
+    "color_jitter",
 )
 # Settings read from the ``init`` checkpoint when neither the TOML file nor a flag sets them.
-INIT_MODEL_FIELDS = ("frames", "frame_stride", "width", "up_kernel")
+INIT_MODEL_FIELDS = ("frames", "frame_stride", "width", "up_kernel", "rest_input")
 # Of those, the ones the weights' shapes fix (a run may change the stride of its init).
-INIT_SHAPE_FIELDS = ("frames", "width", "up_kernel")
+INIT_SHAPE_FIELDS = ("frames", "width", "up_kernel", "rest_input")
 _INT_MINIMUMS = {
     "epochs": 1,
     "batch_size": 1,
@@ -69,7 +71,7 @@ _INT_MINIMUMS = {
     "skip_presses": 0,
 }
 _OPTIONAL_INTS = ("steps", "threads", "image_size", "presses")  # None, or an integer >= 1
-_NON_NEGATIVE = ("lr", "lr_min", "weight_decay", "noise_std", "checkpoint_every_min")
+_NON_NEGATIVE = ("lr", "lr_min", "weight_decay", "noise_std", "checkpoint_every_min", "color_jitter")
 _OPTIONAL_POSITIVE = ("budget_min", "val_every_min")  # None, or a number > 0
 
 
@@ -115,6 +117,8 @@ class TrainConfig(_Serializable):
     skip_presses: int = 0  # ... after dropping its first ones (a new pouch's break-in)
     train_layers: str = "all"  # all | decoder (the encoder stays as initialised)
     augment: bool = True  # the 8 dihedral transforms of the training windows
+    rest_input: bool = False  # rest-referenced model: it also sees the pouch at rest
+    color_jitter: float = 0.0  # strength of random colour/contrast changes (0: none; 1: strong)
     progress: bool = True  # tqdm progress bars
 
     def __post_init__(self) -> None:
@@ -174,6 +178,7 @@ class TrainConfig(_Serializable):
             width=self.width,
             up_kernel=self.up_kernel,
             dropout=self.dropout,
+            rest_input=self.rest_input,
         )
 
     @property

@@ -44,7 +44,7 @@ from beadsight.train.config import (
     TrainConfig,
     field_default,
 )
-from beadsight.train.windows import WindowLabels, pixel_stats, window_frame_mask
+from beadsight.train.windows import WindowLabels, pixel_stats
 
 logger = logging.getLogger(__name__)
 
@@ -88,10 +88,10 @@ def prepare_data(
             f"split {config.split} leaves the train split with no presses "
             f"({ds.num_presses} presses in {ds.path})"
         )
-    labels, span = {}, config.span
+    labels, span, rest = {}, config.span, config.rest_input
     for name in ("train", "val"):
-        ends = dataset_window_ends(ds, span, presses=split[name])
-        labels[name] = WindowLabels.from_dataset(ds, ends, image_size)
+        ends = dataset_window_ends(ds, span, presses=split[name], rest=rest)
+        labels[name] = WindowLabels.from_dataset(ds, ends, image_size, rest=rest)
     if len(labels["train"]) == 0:
         raise ConfigError(
             f"frames {config.frames} (frame stride {config.frame_stride}): no frame of the "
@@ -100,7 +100,7 @@ def prepare_data(
         )
     if len(labels["val"]) == 0:
         logger.warning("no validation windows: best.pt will follow the training loss")
-    mask = window_frame_mask(np.concatenate([labels[n].ends for n in labels]), span, len(ds))
+    mask = labels["train"].frame_mask(span, len(ds)) | labels["val"].frame_mask(span, len(ds))
     return RunData(split, labels, image_size, fp, mask)
 
 
@@ -182,7 +182,7 @@ def new_model(
     the training split. ``info``: where to log it (the trainer logs on rank 0 only)."""
     geometry = ds.geometry.with_image_size(data.image_size)
     train_labels = data.labels["train"]
-    mask = window_frame_mask(train_labels.ends, config.span, len(ds))
+    mask = train_labels.frame_mask(config.span, len(ds))
     mean, std = pixel_stats(ds, mask, data.image_size)
     if not train_labels.contact.any():
         raise DatasetError(

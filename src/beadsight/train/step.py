@@ -11,10 +11,17 @@ from contextlib import AbstractContextManager, nullcontext
 import torch
 import torch.nn.functional as F
 
+from beadsight.train.augment import color_jitter as jitter
 
-def model_inputs(module, frames: torch.Tensor, noise_std: float = 0.0) -> torch.Tensor:
-    """(B, T, S, S, 3) uint8 RGB -> (B, 3T, S, S) float32 normalised network input,
-    plus Gaussian noise of ``noise_std`` (pass 0 for validation and inference)."""
+
+def model_inputs(
+    module, frames: torch.Tensor, noise_std: float = 0.0, color_jitter: float = 0.0
+) -> torch.Tensor:
+    """(B, inputs, S, S, 3) uint8 RGB -> (B, C, S, S) float32 normalised network input,
+    after colour jitter of strength ``color_jitter`` and plus Gaussian noise of
+    ``noise_std`` (pass 0 for both for validation and inference)."""
+    if color_jitter > 0:
+        frames = jitter(frames, color_jitter)
     x = module.normalize(frames)
     if noise_std > 0:
         x = x + noise_std * torch.randn_like(x)
@@ -37,6 +44,7 @@ def optimizer_step(
     *,
     output_scale_kpa: float,
     noise_std: float,
+    color_jitter: float = 0.0,
     autocast_dtype: torch.dtype | None = None,
     scaler: torch.amp.GradScaler | None = None,
 ) -> torch.Tensor:
@@ -46,7 +54,7 @@ def optimizer_step(
     wrapped in DDP. frames: (B, T, S, S, 3) uint8 RGB; targets: (B, S, S) kPa.
     Loss: MSE between the network output and ``targets / output_scale_kpa``.
     """
-    x = model_inputs(module, frames, noise_std)
+    x = model_inputs(module, frames, noise_std, color_jitter)
     with autocast(frames.device, autocast_dtype):
         out = net(x)  # (B, 1, S, S)
     loss = F.mse_loss(out[:, 0].float(), targets / output_scale_kpa)

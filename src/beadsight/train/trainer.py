@@ -296,6 +296,7 @@ class Trainer:
             targets,
             output_scale_kpa=self.scale,
             noise_std=self.config.noise_std,
+            color_jitter=self.config.color_jitter,
             autocast_dtype=self.autocast_dtype,
             scaler=self.scaler,
         )

@@ -41,6 +41,7 @@ from tqdm import tqdm
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
+from beadsight.data.rest import REST_FRAMES, average_rest, rest_frame_mask, rest_ends, with_rest
 from beadsight.train.augment import D4_ORDER, d4_batch, index_on
 from beadsight.train.config import LOADER_MODES
 
@@ -125,7 +126,9 @@ class WindowLabels:
     """What labels the windows of one split: end frames and their label inputs.
 
     ends: (M,) int64 frame index of each window's newest frame; force_n: (M,) N;
-    position_mm: (M, 2) mm; contact: (M,) bool; geometry: at the training image size.
+    position_mm: (M, 2) mm; contact: (M,) bool; geometry: at the training image size;
+    rests: (M,) int64 last frame of each window's rest image (rest-referenced models,
+    :func:`~beadsight.data.rest.rest_ends`), or None.
     """
 
     ends: np.ndarray
@@ -133,17 +136,33 @@ class WindowLabels:
     position_mm: np.ndarray
     contact: np.ndarray
     geometry: SensorGeometry
+    rests: np.ndarray | None = None
 
     @classmethod
-    def from_dataset(cls, ds: Dataset, ends: np.ndarray, image_size: int) -> WindowLabels:
+    def from_dataset(
+        cls, ds: Dataset, ends: np.ndarray, image_size: int, rest: bool = False
+    ) -> WindowLabels:
+        """Labels of the windows ending at ``ends`` (with their rest frames if ``rest``:
+        every end must have one, as :func:`dataset_window_ends` with ``rest`` gives)."""
         ends = np.asarray(ends, dtype=np.int64)
+        rests = rest_ends(ds.force_n, ds.valid)[ends] if rest else None
+        if rests is not None and (rests < 0).any():
+            raise ValueError(f"{ds.path}: some windows have no rest frames before them")
         return cls(
             ends=ends,
             force_n=ds.force_n[ends].astype(np.float64),
             position_mm=ds.position_mm[ends].astype(np.float64),
             contact=ds.contact[ends].astype(bool),
             geometry=ds.geometry.with_image_size(image_size),
+            rests=rests,
         )
+
+    def frame_mask(self, span: int, num_frames: int) -> np.ndarray:
+        """(num_frames,) bool: the frames these windows (and their rest images) read."""
+        mask = window_frame_mask(self.ends, span, num_frames)
+        if self.rests is not None:
+            mask |= rest_frame_mask(self.rests, num_frames)
+        return mask
 
     def __len__(self) -> int:
         return len(self.ends)
@@ -158,7 +177,8 @@ class WindowLabels:
 class WindowDataset(torch.utils.data.Dataset):
     """Host-mode windows read from the HDF5 file (one contiguous slice per window).
 
-    item ``i``: (frames (T, S, S, 3) uint8 RGB oldest first, target (S, S) float32 kPa),
+    item ``i``: (images (inputs, S, S, 3) uint8 RGB: the rest image first if the labels
+    have rests, then the window oldest first; target (S, S) float32 kPa),
     where S is ``labels.geometry.image_size_px`` (frames are resized with
     ``cv2.INTER_AREA`` if the file's frames are larger). The file is opened lazily
     in each process, so the dataset can go to DataLoader workers.
@@ -184,10 +204,16 @@ class WindowDataset(torch.utils.data.Dataset):
         return self._ds
 
     def read(self, i: int) -> np.ndarray:
-        """(span, S, S, 3) uint8 RGB frames of window ``i``."""
-        end = int(self.labels.ends[i])
-        frames = self._dataset().read_frames(end - self.span + 1, end + 1)
-        return resize_frames(frames, self.labels.geometry.image_size_px)
+        """(inputs, S, S, 3) uint8 RGB images of window ``i`` (rest image first, if any)."""
+        end, size = int(self.labels.ends[i]), self.labels.geometry.image_size_px
+        window = resize_frames(self._dataset().read_frames(end - self.span + 1, end + 1), size)
+        if self.labels.rests is None:
+            return window
+        r = int(self.labels.rests[i])
+        rest = average_rest(
+            resize_frames(self._dataset().read_frames(r - REST_FRAMES + 1, r + 1), size)
+        )
+        return with_rest(rest, window)
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         target = self.labels.maps(np.array([i]))[0]
@@ -246,8 +272,9 @@ class DeviceFrames:
 class DeviceWindows:
     """Device-mode windows: batches gathered from :class:`DeviceFrames` and labelled on the device.
 
-    ``batch(index)`` with (B,) window indices returns (frames (B, span, S, S, 3) uint8
-    RGB, targets (B, S, S) float32 kPa), both on the frames' device.
+    ``batch(index)`` with (B,) window indices returns (images (B, inputs, S, S, 3) uint8
+    RGB, the rest image first if the labels have rests; targets (B, S, S) float32 kPa),
+    both on the frames' device.
     """
 
     def __init__(self, store: DeviceFrames, labels: WindowLabels, span: int):
@@ -264,6 +291,15 @@ class DeviceWindows:
         self._force = torch.as_tensor(labels.force_n, dtype=torch.float32, device=device)
         self._position = torch.as_tensor(labels.position_mm, dtype=torch.float32, device=device)
         self._contact = torch.as_tensor(labels.contact, device=device)
+        self._rests = None
+        if labels.rests is not None:
+            compact_rests = store.compact[labels.rests]
+            if (compact_rests < REST_FRAMES - 1).any() or (
+                store.compact[labels.rests - REST_FRAMES + 1] < 0
+            ).any():
+                raise ValueError("DeviceWindows: the frame store lacks rest frames of some windows")
+            self._rests = torch.as_tensor(compact_rests, device=device)
+            self._rest_offsets = torch.arange(-REST_FRAMES + 1, 1, device=device)
 
     def __len__(self) -> int:
         return len(self.labels)
@@ -273,6 +309,12 @@ class DeviceWindows:
         rows = self._ends[idx][:, None] + self._offsets[None]  # (B, T) frame rows
         frames = self.store.frames.index_select(0, rows.reshape(-1))  # (B*T, S, S, 3)
         frames = frames.view(len(idx), self.span, *frames.shape[1:])  # (B, span, S, S, 3)
+        if self._rests is not None:
+            rows = self._rests[idx][:, None] + self._rest_offsets[None]  # (B, K) rest rows
+            rest = self.store.frames.index_select(0, rows.reshape(-1))
+            rest = rest.view(len(idx), REST_FRAMES, *rest.shape[1:]).float().mean(1)
+            rest = rest.round_().to(torch.uint8)  # (B, S, S, 3): as average_rest
+            frames = torch.cat([rest[:, None], frames], dim=1)  # (B, 1 + span, S, S, 3)
         targets = label_maps(
             self._force[idx], self._position[idx], self._contact[idx], self.labels.geometry
         )
