@@ -32,7 +32,6 @@ import numpy as np
 import torch
 
 from beadsight import safe_numpy
-from beadsight._compat import renamed_attribute
 from beadsight.config import REFERENCE_G_TO_N, ModelConfig, SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.files import atomic_write_bytes

@@ -41,7 +41,7 @@ from tqdm import tqdm
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
-from beadsight.data.rest import REST_FRAMES, average_rest, rest_frame_mask, rest_ends, with_rest
+from beadsight.data.rest import REST_FRAMES, average_rest, rest_ends, rest_frame_mask, with_rest
 from beadsight.train.augment import D4_ORDER, d4_batch, index_on
 from beadsight.train.config import LOADER_MODES
 
