@@ -46,8 +46,7 @@ def register(commands) -> None:
 
 def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     from beadsight.cli.options import add_fields
-    from beadsight.sim.config import SimConfig
-    from beadsight.sim.press import PROFILES
+    from beadsight.sim.config import PRESS_PROFILES, SimConfig
 
     p.add_argument("--out", required=True, help="output dataset .h5")
     p.add_argument("--presses", type=int, required=True, help="number of presses")
@@ -76,7 +75,7 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--profile",
-        choices=PROFILES,
+        choices=PRESS_PROFILES,
         default="reference",
         help="how the presses move: reference (F200 descent, 1 s dwell, F700 rise) or "
         "mixed (also 3-20 s and 60-90 s holds, F20-F60 ramps, depth steps and slow drifts "

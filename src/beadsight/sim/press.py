@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from beadsight.errors import ConfigError
-from beadsight.sim.config import SimConfig
+from beadsight.sim.config import PRESS_PROFILES, SimConfig
 
 MM_MIN_PER_MM_S = 60.0  # feeds are mm/min; divide by this for mm/s
 RAMP_START_ABOVE_SURFACE_MM = 0.25  # a slow ramp starts (and a slow release ends) this high
@@ -33,7 +33,7 @@ RAMP_START_ABOVE_SURFACE_MM = 0.25  # a slow ramp starts (and a slow release end
 # "adjust": a change of depth while the press is held (a HoldMove's move)
 PHASES = ("travel", "descend", "dwell", "adjust", "rise", "pause")
 
-PROFILES = ("reference", "mixed")  # the press profiles a session can draw (see draw_profile)
+PROFILES = PRESS_PROFILES  # the press profiles a session can draw (see draw_profile)
 
 # --- the "mixed" profile: what each kind of press is drawn from ---------------------------
 # kind, probability. Expected length of a press (default rig; 2000 drawn presses, seed 0):
