@@ -46,7 +46,7 @@ def register(commands) -> None:
 
 def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     from beadsight.cli.options import add_fields
-    from beadsight.sim.config import SimConfig
+    from beadsight.sim.config import PRESS_PROFILES, SimConfig
 
     p.add_argument("--out", required=True, help="output dataset .h5")
     p.add_argument("--presses", type=int, required=True, help="number of presses")
@@ -74,6 +74,14 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
         "a base-model training set (train) or builds no base model saw (heldout)",
     )
     p.add_argument(
+        "--profile",
+        choices=PRESS_PROFILES,
+        default="reference",
+        help="how the presses move: reference (F200 descent, 1 s dwell, F700 rise) or "
+        "mixed (also 3-20 s and 60-90 s holds, F20-F60 ramps, depth steps and slow drifts "
+        "while held; about 2.5x the frames per press), for rest-referenced training",
+    )
+    p.add_argument(
         "--workers",
         type=int,
         default=1,
@@ -87,8 +95,9 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
 def _simulate(args: argparse.Namespace) -> int:
     """Simulate calibration presses on a virtual BeadSight and write a dataset.
 
-    Runs the reference press pattern (F200 descent, 1 s dwell, F700 rise) on the
-    simulated sensor and records frames, the simulated scale's force and the
+    Runs the reference press pattern (F200 descent, 1 s dwell, F700 rise), or with
+    --profile mixed also long holds, slow ramps and presses that change while held, on
+    the simulated sensor and records frames, the simulated scale's force and the
     commanded printer position, like a real calibration session.
     """
     from beadsight.cli.options import given
@@ -102,6 +111,7 @@ def _simulate(args: argparse.Namespace) -> int:
         fps=args.fps,
         compression=args.compression,
         variety=args.variety,
+        profile=args.profile,
         overwrite=args.overwrite,
         progress=not args.no_progress,
         workers=args.workers,

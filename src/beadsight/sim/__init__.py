@@ -4,7 +4,8 @@
 * :class:`PouchSimulator` - bead mechanics under a flat finger, true force, and the
   camera's sensor-space (``render``) and raw fisheye (``render_raw``) frames;
 * :class:`SimulatedScale` - the HX711 kitchen scale the rig reads forces from;
-* :class:`SimulatedSession` - the reference press pattern, frame by frame;
+* :class:`SimulatedSession` - the reference press pattern, or a profile of long holds,
+  slow ramps and depth changes while held (:class:`Press`, ``PROFILES``), frame by frame;
 * :func:`simulate_dataset` - record a session as a dataset (scale force, commanded XY);
 * :func:`sample_pouch` / :class:`PouchDistribution` - the range of real builds (pouch,
   light, camera, image), with a held-out split, for base models.
@@ -20,6 +21,8 @@ from beadsight._compat import lazy_names
 # not load the simulator, scipy or h5py).
 _NAMES = {
     "PRESET_BEAD_COUNTS": "beadsight.sim.config",
+    "PROFILES": "beadsight.sim.press",
+    "HoldMove": "beadsight.sim.press",
     "PouchDistribution": "beadsight.sim.variety",
     "PouchSample": "beadsight.sim.variety",
     "PouchSimulator": "beadsight.sim.simulator",

@@ -27,6 +27,9 @@ MIXED_TINTS_RGB = (
 )
 
 PRESET_BEAD_COUNTS = (75, 100, 125)  # pouch variants of the published sensor
+# How a session's drawn presses move (beadsight.sim.press.draw_profile): the reference
+# pattern, or a mix with long holds, slow ramps and depth changes while held.
+PRESS_PROFILES = ("reference", "mixed")
 WARM_WHITE_RGB = (1.0, 0.97, 0.92)  # colour of the reference build's LEDs (linear RGB)
 
 

@@ -31,6 +31,7 @@ from beadsight.config import REFERENCE_G_TO_N
 from beadsight.data.dataset import DatasetWriter, open_dataset
 from beadsight.errors import BeadSightError
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
+from beadsight.sim.press import check_profile
 from beadsight.sim.session import SimFrame, SimulatedSession
 from beadsight.sim.variety import FACTOR_NAMES, SPLITS
 
@@ -108,6 +109,7 @@ def simulate_dataset(
     compression: str | None = None,
     pouches: int = 1,
     variety: str | None = None,
+    profile: str = "reference",
     overwrite: bool = False,
     progress: bool = True,
     workers: int = 1,
@@ -121,14 +123,16 @@ def simulate_dataset(
     trained on the dataset meets more than one bead arrangement and look. variety:
     ``"train"`` or ``"heldout"``: each pouch is a different build drawn from that
     split of :mod:`beadsight.sim.variety` (``config`` is the base: image size, fps,
-    rig). An existing ``out`` is refused unless ``overwrite``. Frames are RGB;
+    rig). profile: how the presses move, one of :data:`~beadsight.sim.press.PROFILES`
+    (``"mixed"``: long holds, slow ramps and depth changes while held, for
+    rest-referenced training; see :func:`~beadsight.sim.press.draw_profile`). An existing ``out`` is refused unless ``overwrite``. Frames are RGB;
     provenance records the seed, the pouches, the full config and each build's factors.
     workers > 1: simulate in that many processes, each a shard of whole pouches with
     its own seed (spawned from ``seed``), joined into ``out`` in shard order (see
     :func:`simulate_sharded`); the same seed and workers give the same dataset.
     """
     out = Path(out)
-    _check_arguments(out, presses, pouches, compression, variety, workers, overwrite)
+    _check_arguments(out, presses, pouches, compression, variety, workers, overwrite, profile)
     cfg = sim_config_for(n_beads, image_size, fps, config)
     if workers > 1 and pouches > 1:
         return simulate_sharded(
@@ -140,11 +144,12 @@ def simulate_dataset(
             int(workers),
             compression=compression,
             variety=variety,
+            profile=profile,
             progress=progress,
         )
     per_pouch = math.ceil(presses / pouches) if pouches > 1 else None
     session = SimulatedSession(
-        cfg, seed, int(presses), presses_per_pouch=per_pouch, variety=variety
+        cfg, seed, int(presses), presses_per_pouch=per_pouch, variety=variety, profile=profile
     )
     provenance = {
         "source": "sim",
@@ -153,6 +158,7 @@ def simulate_dataset(
             "presses": int(presses),
             "pouches": int(pouches),
             "presses_per_pouch": per_pouch,
+            "profile": profile,
             "config": cfg.to_dict(),
             "beadsight_version": __version__,
             **({} if variety is None else {"variety": variety_provenance(session, pouches)}),
@@ -171,7 +177,9 @@ def simulate_dataset(
     return out
 
 
-def _check_arguments(out, presses, pouches, compression, variety, workers, overwrite) -> None:
+def _check_arguments(
+    out, presses, pouches, compression, variety, workers, overwrite, profile
+) -> None:
     def positive_int(value) -> bool:
         return not isinstance(value, bool) and int(value) == value and value >= 1
 
@@ -185,6 +193,7 @@ def _check_arguments(out, presses, pouches, compression, variety, workers, overw
         raise SimulationError(f"compression must be None, 'gzip' or 'lzf', got {compression!r}")
     if variety is not None and variety not in SPLITS:
         raise SimulationError(f"variety must be None or one of {SPLITS}, got {variety!r}")
+    check_profile(profile)  # a ConfigError naming the profiles
     if not positive_int(workers):
         raise SimulationError(f"workers must be a positive integer, got {workers!r}")
 
@@ -271,6 +280,7 @@ def simulate_sharded(
     *,
     compression: str | None = None,
     variety: str | None = None,
+    profile: str = "reference",
     progress: bool = True,
 ) -> Path:
     """Simulate shards of whole pouches in ``workers`` processes and join them into ``out``.
@@ -291,7 +301,7 @@ def simulate_sharded(
     with tempfile.TemporaryDirectory(prefix=f".{out.name}.shards-", dir=out.parent) as tmp:
         paths = [str(Path(tmp) / f"shard{k:03d}.h5") for k in range(len(plan))]
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            shard_args = dict(config=cfg, compression=compression, variety=variety)
+            shard_args = dict(config=cfg, compression=compression, variety=variety, profile=profile)
             jobs = [
                 pool.submit(simulate_dataset, path, n, s, pouches=p, progress=False, **shard_args)
                 for path, (n, p, s) in zip(paths, plan, strict=True)

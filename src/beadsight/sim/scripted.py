@@ -2,8 +2,9 @@
 
 A steady load is what naive drift filters erase: an object resting in a gripper. The
 :func:`steady_press` session rests for ``rest_s`` (the rest reference can be taken), then
-presses at one place and holds the finger still for ``hold_s`` (the reference press
-pattern's dwell, made long), then rises. Used by the steady-load test and
+presses at one place and holds the finger still for ``hold_s`` (the press's own dwell,
+:attr:`~beadsight.sim.press.Press.dwell_s`), then rises. ``SimulatedSession(profile=
+"mixed")`` draws such holds (and ramps and depth changes) for training sets. Used by the steady-load test and
 ``benchmarks/steady_press.py``.
 """
 
@@ -34,8 +35,8 @@ def steady_press(
     depth_mm: how deep below the pouch surface (mm); rest_s: unloaded time before
     the finger touches (s). Pass both to
     :class:`~beadsight.devices.virtual.SimCamera` (``config=``, ``presses=``) or
-    :class:`~beadsight.sim.session.SimulatedSession`. Every press of the session dwells
-    ``hold_s``.
+    :class:`~beadsight.sim.session.SimulatedSession`. The config is ``config`` with a
+    higher clear Z (for ``rest_s``); the press dwells ``hold_s``.
     """
     base = config if config is not None else SimConfig()
     for name, value in (("hold_s", hold_s), ("depth_mm", depth_mm), ("rest_s", rest_s)):
@@ -43,6 +44,6 @@ def steady_press(
             raise ConfigError(f"steady_press: {name} must be a number > 0, got {value!r}")
     # the finger starts rest_s of descent above the pouch (the camera sees no finger there)
     clear_z_mm = base.surface_z_mm + rest_s * base.descend_feed_mm_min / MM_MIN_PER_MM_S
-    cfg = dataclasses.replace(base, dwell_s=float(hold_s), clear_z_mm=float(clear_z_mm))
+    cfg = dataclasses.replace(base, clear_z_mm=float(clear_z_mm))
     x, y = (float(v) for v in xy_mm)
-    return cfg, [Press(x, y, float(base.surface_z_mm - depth_mm))]
+    return cfg, [Press(x, y, float(base.surface_z_mm - depth_mm), dwell_s=float(hold_s))]

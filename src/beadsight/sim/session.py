@@ -22,7 +22,7 @@ import numpy as np
 from beadsight.config import REFERENCE_G_TO_N
 from beadsight.errors import ConfigError
 from beadsight.sim.config import SimConfig
-from beadsight.sim.press import Press, PressCycle
+from beadsight.sim.press import PROFILES, Press, PressCycle, check_profile, draw_profile
 from beadsight.sim.scale import SimulatedScale
 from beadsight.sim.simulator import PouchSimulator
 from beadsight.sim.variety import PouchDistribution, PouchSample
@@ -68,8 +68,12 @@ class SimulatedSession:
     """Iterate over the camera frames of a simulated calibration session.
 
     config: the simulated sensor and rig (default :class:`SimConfig`); seed: int;
-    presses: None for an endless session, an int for that many random presses
-    (reference pattern), or a sequence of :class:`Press`. render: render
+    presses: None for an endless session, an int for that many random presses, or a
+    sequence of :class:`Press` (each carries its own profile). profile: how drawn presses
+    move, one of :data:`~beadsight.sim.press.PROFILES`: ``"reference"`` (the reference
+    pattern) or ``"mixed"`` (long holds, slow ramps, depth changes while held; see
+    :func:`~beadsight.sim.press.draw_profile`). A mixed session's presses are at the same
+    places and bottom depths as the reference session with the same seed. render: render
     sensor-space frames (off: physics and scale only, much faster); raw: also
     render raw fisheye frames. presses_per_pouch: replace the pouch with a fresh one
     (new beads, arrangement, bubbles and look) before every this many presses, as a
@@ -92,12 +96,16 @@ class SimulatedSession:
         raw: bool = False,
         presses_per_pouch: int | None = None,
         variety: str | None = None,
+        profile: str = "reference",
     ):
         self.config = config if config is not None else SimConfig()
         self.seed = seed
-        # A sixth stream for variety: the first five are those of sessions without it.
-        streams = np.random.SeedSequence(seed).spawn(6)
-        sim_seq, scale_seq, plan_seq, clock_seq, self._pouch_seq, variety_seq = streams
+        # A sixth stream for variety, a seventh for profiles: the first five are those of
+        # sessions without them (spawned children do not depend on how many are spawned).
+        streams = np.random.SeedSequence(seed).spawn(7)
+        sim_seq, scale_seq, plan_seq, clock_seq, self._pouch_seq, variety_seq = streams[:6]
+        self.profile = check_profile(profile)
+        self._profile_rng = np.random.default_rng(streams[6])
         self.variety = variety
         self._builds: list[PouchSample] = []
         if variety is not None:
@@ -123,6 +131,11 @@ class SimulatedSession:
                 raise ConfigError(f"presses must be >= 0, got {presses}")
             self.presses = [self._draw_press() for _ in range(int(presses))]
         else:
+            if profile != PROFILES[0]:
+                raise ConfigError(
+                    f"profile={profile!r} is for drawn presses; a sequence of Press carries "
+                    "its own profile (pass profile='reference')"
+                )
             self.presses = list(presses)
         self._started = False
 
@@ -144,7 +157,9 @@ class SimulatedSession:
         cfg, rng = self.config, self._plan_rng
         x, y = rng.uniform(-cfg.press_range_mm, cfg.press_range_mm, 2)
         z = rng.uniform(*cfg.press_z_range_mm)
-        return Press(float(x), float(y), float(z))
+        return draw_profile(
+            cfg, Press(float(x), float(y), float(z)), self.profile, self._profile_rng
+        )
 
     def _cycles(self) -> Iterator[PressCycle]:
         start_s, xy, index = 0.0, np.zeros(2), 0
