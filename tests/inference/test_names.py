@@ -15,7 +15,7 @@ import torch
 from inference_helpers import stream
 
 import beadsight
-from beadsight.checkpoint import PressureModel, load_checkpoint, shipped_model_path
+from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.config import ConfigError, ModelConfig
 from beadsight.inference.predictor import PressurePredictor, PressureReading
 from beadsight.inference.runtimes import TorchBackend
@@ -101,16 +101,6 @@ def test_v01_checkpoint_loads_silently(strided_model, tmp_path, no_warnings):
     stored = json.loads(torch.load(tmp_path / "v02.pt", weights_only=True)["beadsight"])
     assert stored["format_version"] == 2 and stored["model"]["frames"] == 15
     assert "window" not in stored["model"] and resaved.meta.model == model.meta.model
-
-
-def test_shipped_model_written_by_an_earlier_beadsight_loads(no_warnings):
-    """The shipped asset is a format-1 file (``window``), made before the rename."""
-    path = shipped_model_path()
-    stored = json.loads(torch.load(path, weights_only=True)["beadsight"])
-    assert stored["format_version"] == 1 and "window" in stored["model"]
-    model = load_checkpoint(path)
-    assert model.frames == stored["model"]["window"]
-    assert model.span == (model.frames - 1) * stored["model"]["frame_stride"] + 1
 
 
 def test_onnx_file_exported_by_v01_still_matches_its_checkpoint(probe_model, tmp_path):
