@@ -7,8 +7,8 @@ Python values (it loads with ``weights_only=True``):
 
 The metadata carries the model config (``frames`` T, ``frame_stride``, width, ...),
 channel order, normalisation, output scale, sensor geometry, units and provenance,
-so the file alone rebuilds a working predictor. Format version 2 names the frame
-count ``frames``; version 1 files (``window``) load unchanged.
+so the file alone rebuilds a working predictor. One format version is read:
+:data:`FORMAT_VERSION`.
 
 Reference checkpoints (pickled training dicts with numpy arrays) are read with
 ``weights_only=True``; numpy arrays are built only by the checked stand-ins of
@@ -32,7 +32,6 @@ import numpy as np
 import torch
 
 from beadsight import safe_numpy
-from beadsight._compat import renamed_attribute
 from beadsight.config import REFERENCE_G_TO_N, ModelConfig, SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.files import atomic_write_bytes
@@ -40,7 +39,7 @@ from beadsight.geometry import PA_PER_KPA
 from beadsight.model import FramesToPressure, UNet, infer_model_config
 
 FORMAT = "beadsight-checkpoint"
-FORMAT_VERSION = 2  # 2: model "window" renamed "frames" (version 1 files still load)
+FORMAT_VERSION = 2  # the only version read; version 1 (never released) called T "window"
 SHIPPED_MODEL = "sim_model.pt"  # the simulated-sensor model, in the package's assets folder
 BASE_MODEL = "base_model.pt"  # the any-pouch base model that `calibrate` fine-tunes (assets)
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
@@ -95,13 +94,15 @@ class CheckpointMeta:
                 )
             if d.get("format") != FORMAT:
                 raise CheckpointError(f"{source}: metadata format is {d.get('format')!r}")
-            if d.get("format_version", 0) > FORMAT_VERSION:
+            version = d.get("format_version")
+            if version != FORMAT_VERSION:
+                newer = isinstance(version, int) and version > FORMAT_VERSION
                 raise CheckpointError(
-                    f"{source}: checkpoint format_version {d['format_version']} is newer than "
-                    f"this beadsight supports ({FORMAT_VERSION}); upgrade beadsight"
+                    f"{source}: checkpoint format_version {version!r}; this beadsight reads "
+                    f"version {FORMAT_VERSION} only" + ("; upgrade beadsight" if newer else "")
                 )
             return cls(
-                model=ModelConfig.from_dict(ModelConfig.upgrade_keys(d["model"])),
+                model=ModelConfig.from_dict(d["model"]),
                 geometry=SensorGeometry.from_dict(d["geometry"]),
                 pixel_mean=_floats(d["pixel_mean"], source, "pixel_mean"),
                 pixel_std=_floats(d["pixel_std"], source, "pixel_std"),
@@ -143,8 +144,6 @@ class PressureModel:
     def span(self) -> int:
         """Consecutive frames one input window covers: ``(frames - 1) * frame_stride + 1``."""
         return self.meta.model.span
-
-    window = renamed_attribute("PressureModel", "window", "span")
 
     @property
     def image_size(self) -> int:

@@ -14,7 +14,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from beadsight._compat import renamed_attribute
 from beadsight.config import ModelConfig
 
 
@@ -160,8 +159,6 @@ class FramesToPressure(nn.Module):
     def span(self) -> int:
         """Consecutive frames one input window covers (oldest first)."""
         return self.net.config.span
-
-    window = renamed_attribute("FramesToPressure", "window", "span")
 
     def seen(self, window: torch.Tensor) -> torch.Tensor:
         """(B, span, ...) -> (B, T, ...): the frames the network sees, the newest included."""

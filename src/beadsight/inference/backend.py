@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from beadsight._compat import renamed_attribute
 from beadsight.checkpoint import PressureModel
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.inference.config import BACKENDS, PRECISIONS
@@ -42,8 +41,6 @@ class Backend:
         self.frames = model.frames
         self.image_size = model.image_size
         self._shape = (1, self.span, self.image_size, self.image_size, 3)
-
-    window = renamed_attribute("Backend", "window", "span")
 
     def describe(self) -> str:
         return f"{self.name}/{self.precision}"
