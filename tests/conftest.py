@@ -15,7 +15,7 @@ from synthetic_presses import make_press_arrays, synthetic_press_frames
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.data.dataset import DatasetWriter
+from beadsight.data.writer import DatasetWriter
 
 TINY = SensorGeometry(image_size_px=64)
 

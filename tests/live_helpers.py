@@ -26,7 +26,6 @@ from beadsight.live.settings import LiveSettings
 
 TINY = SensorGeometry(image_size_px=64)
 SPAN = 15  # frames per window of tiny_model() (15 frames, stride 1)
-WINDOW = SPAN  # its name before "frames" and "span" were told apart
 TORCH = LiveSettings(backend="torch", precision="fp32")  # fast to build; "auto" times candidates
 BACKEND = {"settings": TORCH}
 MODEL_ONLY = {"settings": LiveSettings(backend="torch", precision="fp32", hold=False)}  # no hold

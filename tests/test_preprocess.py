@@ -244,14 +244,3 @@ def test_board_points_layout():
     pts = board_points((3, 2), 10.0)
     assert pts.shape == (6, 3)
     np.testing.assert_allclose(pts[:4], [[0, 0, 0], [10, 0, 0], [20, 0, 0], [0, 10, 0]])
-
-
-def test_calibration_names_moved_out_of_preprocess_still_import_with_a_warning():
-    import beadsight.calibration
-    import beadsight.preprocess
-
-    for name in ("calibrate_fisheye", "load_calibration", "FisheyeCalibration", "CalibrationError"):
-        with pytest.warns(DeprecationWarning, match=f"beadsight.calibration.{name}"):
-            assert getattr(beadsight.preprocess, name) is getattr(beadsight.calibration, name)
-    with pytest.raises(AttributeError):
-        beadsight.preprocess.no_such_name  # noqa: B018

@@ -9,12 +9,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from beadsight import _compat
-
 __version__ = "0.1.0"
-
-_compat.install()  # old module paths (beadsight.predictor, ...) still import, with a warning
-
 
 _API = {  # name -> the module that defines it; each line says what the name is
     # checkpoints and the model
@@ -39,18 +34,11 @@ _API = {  # name -> the module that defines it; each line says what the name is
     "LiveSensor": "beadsight.live.sensor",  # camera / video / simulator -> readings, threaded
     "LiveSettings": "beadsight.live.settings",  # how LiveSensor runs
 }
-_DEPRECATED = {  # old name -> (new name, its module); warn, and go away in 0.3
-    "Reading": ("PressureReading", "beadsight.inference.predictor"),
-}
 
 __all__ = ["__version__", *_API]
 
 
 def __getattr__(name: str) -> Any:
-    if name in _DEPRECATED:
-        new, module = _DEPRECATED[name]
-        _compat.deprecated(f"beadsight.{name}", f"beadsight.{new}")
-        return getattr(importlib.import_module(module), new)
     module = _API.get(name)
     if module is None:
         raise AttributeError(f"module 'beadsight' has no attribute {name!r}")

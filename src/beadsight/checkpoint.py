@@ -7,8 +7,8 @@ Python values (it loads with ``weights_only=True``):
 
 The metadata carries the model config (``frames`` T, ``frame_stride``, width, ...),
 channel order, normalisation, output scale, sensor geometry, units and provenance,
-so the file alone rebuilds a working predictor. Format version 2 names the frame
-count ``frames``; version 1 files (``window``) load unchanged.
+so the file alone rebuilds a working predictor. Versions :data:`READ_VERSIONS` are read:
+version 3 added rest-referenced models (``rest_input``), which version 2 files are not.
 
 Reference checkpoints (pickled training dicts with numpy arrays) are read with
 ``weights_only=True``; numpy arrays are built only by the checked stand-ins of
@@ -39,7 +39,8 @@ from beadsight.geometry import PA_PER_KPA
 from beadsight.model import FramesToPressure, UNet, infer_model_config
 
 FORMAT = "beadsight-checkpoint"
-FORMAT_VERSION = 3  # 2: model "window" renamed "frames"; 3: rest-referenced models (model.rest_input)
+FORMAT_VERSION = 3  # written; 3 adds rest-referenced models (model.rest_input)
+READ_VERSIONS = (2, 3)  # read
 SHIPPED_MODEL = "sim_model.pt"  # the simulated-sensor model, in the package's assets folder
 BASE_MODEL = "base_model.pt"  # the any-pouch base model that `calibrate` fine-tunes (assets)
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
@@ -94,13 +95,15 @@ class CheckpointMeta:
                 )
             if d.get("format") != FORMAT:
                 raise CheckpointError(f"{source}: metadata format is {d.get('format')!r}")
-            if d.get("format_version", 0) > FORMAT_VERSION:
+            version = d.get("format_version")
+            if version not in READ_VERSIONS:
+                newer = isinstance(version, int) and version > FORMAT_VERSION
                 raise CheckpointError(
-                    f"{source}: checkpoint format_version {d['format_version']} is newer than "
-                    f"this beadsight supports ({FORMAT_VERSION}); upgrade beadsight"
+                    f"{source}: checkpoint format_version {version!r}; this beadsight reads "
+                    f"versions {READ_VERSIONS}" + ("; upgrade beadsight" if newer else "")
                 )
             return cls(
-                model=ModelConfig.from_dict(ModelConfig.upgrade_keys(d["model"])),
+                model=ModelConfig.from_dict(d["model"]),
                 geometry=SensorGeometry.from_dict(d["geometry"]),
                 pixel_mean=_floats(d["pixel_mean"], source, "pixel_mean"),
                 pixel_std=_floats(d["pixel_std"], source, "pixel_std"),

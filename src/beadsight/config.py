@@ -9,17 +9,14 @@ attributes and run folders as JSON.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import os
 import sys
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import Any, TypeVar
 
-from beadsight._compat import renamed_attribute
 from beadsight.errors import ConfigError  # defined there; importable from here as before
 
 if sys.version_info >= (3, 11):
@@ -37,24 +34,7 @@ DEVICE_CHOICES = "auto, cpu, cuda, cuda:N or mps"  # torch devices (beadsight.to
 T = TypeVar("T")
 
 
-RENAMES_REMOVED_IN = "0.3"  # old field names (see :func:`renamed_fields`) go away then
-
-
-def _renamed_warning(
-    cls: type, old: str, new: str, stacklevel: int, source: str | None = None
-) -> None:
-    where = f"{source}: " if source else ""
-    warnings.warn(
-        f"{where}{cls.__name__}: {old!r} is now {new!r}; the old name goes away in "
-        f"beadsight {RENAMES_REMOVED_IN}",
-        FutureWarning if source else DeprecationWarning,  # a file's author is an end user
-        stacklevel=stacklevel + 1,
-    )
-
-
 class _Serializable:
-    _renamed: ClassVar[dict[str, str]] = {}  # old field name -> new (see renamed_fields)
-
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)  # type: ignore[arg-type]
 
@@ -62,65 +42,14 @@ class _Serializable:
         return json.dumps(self.to_dict(), sort_keys=True)
 
     @classmethod
-    def upgrade_keys(
-        cls, data: Mapping[str, Any], warn: bool = False, source: str | None = None
-    ) -> dict[str, Any]:
-        """``data`` with renamed fields' old keys under their new names.
-
-        warn: a DeprecationWarning per old key, for settings code passes (files this
-        package wrote before the rename are upgraded silently); with ``source`` (a
-        settings file, a command-line flag) a FutureWarning naming it, which end users
-        see. Both names at once is a :class:`ConfigError`.
-        """
-        out = dict(data)
-        for old, new in cls._renamed.items():
-            if old not in out:
-                continue
-            if new in out:
-                raise ConfigError(f"{old!r} and {new!r} both given; {old!r} is the old name")
-            if warn or source:
-                _renamed_warning(cls, old, new, 3, source)  # the caller's caller
-            out[new] = out.pop(old)
-        return out
-
-    @classmethod
     def from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
-        """Build from a dict, ignoring unknown keys; list values become tuples.
-
-        Old names of renamed fields are accepted with a DeprecationWarning.
-        """
-        data = cls.upgrade_keys(data, warn=True)  # type: ignore[attr-defined]
+        """Build from a dict, ignoring unknown keys; list values become tuples."""
         names = {f.name for f in fields(cls)}  # type: ignore[arg-type]
         kwargs = {}
         for key, value in data.items():
             if key in names:
                 kwargs[key] = tuple(value) if isinstance(value, list) else value
         return cls(**kwargs)
-
-
-def renamed_fields(**renames: str):
-    """Class decorator for a dataclass whose fields were renamed (``old="new"``).
-
-    For one release the old names keep working with a DeprecationWarning: as
-    constructor keywords, as :meth:`_Serializable.from_dict` keys, and as read-only
-    attributes.
-    """
-
-    def decorate(cls: type[T]) -> type[T]:
-        cls._renamed = {**getattr(cls, "_renamed", {}), **renames}  # type: ignore[attr-defined]
-        init = cls.__init__
-
-        @functools.wraps(init)
-        def __init__(self, *args: Any, **kwargs: Any) -> None:
-            kwargs = cls.upgrade_keys(kwargs, warn=True)  # type: ignore[attr-defined]
-            init(self, *args, **kwargs)
-
-        cls.__init__ = __init__  # type: ignore[method-assign]
-        for old, new in renames.items():
-            setattr(cls, old, renamed_attribute(cls.__name__, old, new))
-        return cls
-
-    return decorate
 
 
 @dataclass(frozen=True)
@@ -174,7 +103,6 @@ class ContactThresholds(_Serializable):
             )
 
 
-@renamed_fields(window="frames")
 @dataclass(frozen=True)
 class ModelConfig(_Serializable):
     """The reference U-Net's hyper-parameters.

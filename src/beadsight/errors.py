@@ -5,9 +5,8 @@ Every error a user can cause (a bad setting, file or device) derives from
 CLI prints it as one line. Any other exception is a bug in beadsight: the CLI prints
 "internal error" and, under ``-v``, the traceback.
 
-Errors that were ``ValueError`` subclasses before 0.2 (:class:`ConfigError`,
-``CheckpointError``, ``DatasetError``, ...) keep ``ValueError`` as a second base, so code
-that catches ``ValueError`` around them still works.
+Errors about a bad value (:class:`ConfigError`, ``CheckpointError``, ``DatasetError``, ...)
+also derive from ``ValueError``.
 
 Kept free of imports (no torch, no numpy) so every module and the CLI's help can use it.
 """

@@ -469,27 +469,3 @@ class Preprocessor:
 def check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
     if value not in choices:
         raise ConfigError(f"{name} must be one of {choices}, got {value!r}")
-
-
-# Names that moved to beadsight.calibration in 0.2; still importable from here, with a
-# DeprecationWarning, for one release.
-_MOVED_TO_CALIBRATION = (
-    "CALIBRATION_FORMAT",
-    "MIN_CALIBRATION_VIEWS",
-    "CalibrationError",
-    "FisheyeCalibration",
-    "board_points",
-    "calibrate_fisheye",
-    "find_board",
-    "load_calibration",
-)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _MOVED_TO_CALIBRATION:
-        raise AttributeError(f"module 'beadsight.preprocess' has no attribute {name!r}")
-    import beadsight.calibration
-    from beadsight._compat import deprecated
-
-    deprecated(f"beadsight.preprocess.{name}", f"beadsight.calibration.{name}")
-    return getattr(beadsight.calibration, name)

@@ -9,8 +9,9 @@ import pytest
 
 from beadsight.cli import main
 from beadsight.config import SensorGeometry
-from beadsight.data.dataset import DatasetWriter, open_dataset
+from beadsight.data.dataset import open_dataset
 from beadsight.data.process import ProcessConfig, process_recording
+from beadsight.data.writer import DatasetWriter
 from beadsight.files import WriteError
 from tests.recording_helpers import Timeline, write_beadsight_raw
 

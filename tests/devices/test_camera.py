@@ -19,7 +19,6 @@ from beadsight.devices import (
     DeviceTimeoutError,
     Frame,
     OpenCVCamera,
-    SimClock,
     VideoFileNotFoundError,
 )
 from beadsight.devices.opencv import is_device_path
@@ -330,15 +329,6 @@ def test_bad_frames_from_a_renderer_end_the_stream_with_the_reason():
         with pytest.raises(CameraDisconnectedError, match="capture failed"):
             while True:
                 cam.read(timeout_s=1.0)
-
-
-def test_old_names_still_import_with_a_warning():
-    with pytest.warns(DeprecationWarning, match="beadsight.devices.OpenCVCamera"):
-        from beadsight.devices.camera import OpenCVCamera as Old
-    assert Old is OpenCVCamera
-    with pytest.warns(DeprecationWarning, match="beadsight.devices.clock"):
-        from beadsight.devices.virtual.clock import SimClock as OldClock
-    assert OldClock is SimClock
 
 
 def wait_for(predicate, timeout_s: float = 5.0) -> None:

@@ -13,9 +13,10 @@ import torch
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.cli import main
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.data.dataset import DatasetError, DatasetWriter, open_dataset
+from beadsight.data.dataset import DatasetError, open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.splits import split_presses, window_ends
+from beadsight.data.writer import DatasetWriter
 from beadsight.evaluation.evaluate import (
     EvaluationError,
     WindowReader,

@@ -17,11 +17,11 @@ import beadsight.inference.export as export_module
 from beadsight import PressurePredictor
 from beadsight.checkpoint import PressureModel
 from beadsight.cli import main
-from beadsight.inference.export import (
+from beadsight.inference.export import export_model
+from beadsight.inference.exported import (
     FINGERPRINT_KEY,
     META_KEY,
     ExportError,
-    export_model,
     model_fingerprint,
     read_exported_metadata,
 )

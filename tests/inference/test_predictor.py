@@ -18,7 +18,7 @@ from beadsight.geometry import (
     disk_pressure_kpa,
     total_force_n,
 )
-from beadsight.inference.predictor import DEFAULT_FPS
+from beadsight.inference.predictor import DEFAULT_FPS, PredictorSettings
 from beadsight.inference.runtimes import Backend, TorchBackend
 
 FPS = DEFAULT_FPS
@@ -30,8 +30,10 @@ def _frames(n: int, size: int = 64, seed: int = 0) -> np.ndarray:
     return rng.integers(0, 256, size=(n, size, size, 3), dtype=np.uint8)
 
 
-def _predictor(model: PressureModel, **kwargs) -> PressurePredictor:
-    return PressurePredictor.from_checkpoint(model, "torch", "fp32", **kwargs)
+def _predictor(model: PressureModel, **settings) -> PressurePredictor:
+    return PressurePredictor.from_checkpoint(
+        model, "torch", "fp32", settings=PredictorSettings(**settings)
+    )
 
 
 class FixedMapBackend(Backend):
@@ -254,7 +256,7 @@ def test_otsu_contact_mask_splits_two_levels(tiny_model):
     predictor = PressurePredictor(
         tiny_model,
         backend=FixedMapBackend(tiny_model, pressure),
-        contact_method="otsu",
+        settings=PredictorSettings(contact_method="otsu"),
     )
     for k, frame in enumerate(_frames(T)):
         reading = predictor.update(frame, k / FPS)
@@ -326,13 +328,11 @@ def test_predictor_with_frame_stride(tiny_model):
 # --- construction ------------------------------------------------------------------
 def test_from_checkpoint_equals_the_constructor(tiny_model, tmp_path):
     from beadsight.checkpoint import load_checkpoint
-    from beadsight.inference.predictor import PredictorSettings
 
     path = tiny_model.save(tmp_path / "tiny.pt")
-    loaded = PressurePredictor.from_checkpoint(path, "torch", "fp32", on_gap="hold",
-                                               max_gap_frames=1)  # fmt: skip
-    model = load_checkpoint(path)
     settings = PredictorSettings(on_gap="hold", max_gap_frames=1)
+    loaded = PressurePredictor.from_checkpoint(path, "torch", "fp32", settings=settings)
+    model = load_checkpoint(path)
     built = PressurePredictor(model, TorchBackend(model), settings=settings)
     assert loaded.settings == built.settings == settings
     frames = _frames(T + 8)
@@ -365,3 +365,15 @@ def test_constructor_does_no_file_work(tiny_model, monkeypatch):
     np.testing.assert_allclose(reading.pressure_kpa, tiny_model.predict(frames), atol=1e-5)
     with pytest.raises(AssertionError, match="loaded or probed"):
         PressurePredictor.from_checkpoint(tiny_model)
+
+
+def test_constructor_takes_a_loaded_model_and_a_built_backend(tiny_model, tmp_path):
+    path = tiny_model.save(tmp_path / "tiny.pt")
+    with pytest.raises(TypeError, match=r"got PosixPath; .*PressurePredictor\.from_checkpoint"):
+        PressurePredictor(path)
+    with pytest.raises(TypeError, match=r"backend must be a built Backend or None, got str"):
+        PressurePredictor(tiny_model, "torch")
+    with pytest.raises(TypeError):  # settings is keyword-only; no other arguments
+        PressurePredictor(tiny_model, None, PredictorSettings())
+    with pytest.raises(TypeError):
+        PressurePredictor(tiny_model, on_gap="hold")

@@ -7,11 +7,12 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
-from live_helpers import BACKEND, WINDOW, ScriptedSource, press_frames, tiny_model
+from live_helpers import BACKEND, SPAN, ScriptedSource, press_frames, tiny_model
 
 from beadsight.cli import main
-from beadsight.live.mcap import FRAME_ID, TOPIC_COP, TOPIC_FORCE, TOPIC_PRESSURE, export_mcap
+from beadsight.live.mcap import TOPIC_COP, TOPIC_FORCE, TOPIC_PRESSURE, export_mcap
 from beadsight.live.readings import ReadingsFileError, open_readings
+from beadsight.live.ros_messages import FRAME_ID
 from beadsight.live.sensor import LiveSensor
 
 pytest.importorskip("mcap_ros2")
@@ -101,7 +102,7 @@ def test_live_recording_straight_to_mcap(tmp_path):
         assert sensor.wait(30)
     assert not (tmp_path / "live.mcap.partial").exists()
     messages = read_mcap(out)
-    assert len(seen) == len(frames) - WINDOW + 1
+    assert len(seen) == len(frames) - SPAN + 1
     check_messages(messages, seen)
     assert "/beadsight/reference_force" not in messages  # the source knows no true force
 

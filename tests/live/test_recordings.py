@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from live_helpers import (
     BACKEND,
+    SPAN,
     TINY,
     TORCH,
-    WINDOW,
     ScriptedSource,
     press_frames,
     wait_until,
@@ -174,7 +174,7 @@ def test_cli_live_output_on_a_full_disk_exits_non_zero(model, full_disk, tmp_pat
 
 def test_viewer_record_button_on_a_full_disk_shows_the_error(model, full_disk):
     frames, _ = press_frames(presses=6, per_press=30)
-    source = ScriptedSource(frames, stall_after=WINDOW + 5)
+    source = ScriptedSource(frames, stall_after=SPAN + 5)
     with (
         LiveSensor(model, source, **BACKEND) as sensor,
         ViewerServer(sensor, port=0, record_dir=full_disk) as viewer,

@@ -16,9 +16,9 @@ import pytest
 from live_helpers import (
     BACKEND,
     MODEL_ONLY,
+    SPAN,
     TINY,
     TORCH,
-    WINDOW,
     ScriptedSource,
     StatusLog,
     live_argv,
@@ -55,11 +55,11 @@ def test_every_reading_matches_the_model_on_its_window(model, presses):
         updates = list(stream)
         assert sensor.error is None
         assert sensor.status.state == "ended"
-    assert len(updates) == len(frames) - WINDOW + 1
-    expected = model.predict(np.stack([frames[i : i + WINDOW] for i in range(len(updates))]))
+    assert len(updates) == len(frames) - SPAN + 1
+    expected = model.predict(np.stack([frames[i : i + SPAN] for i in range(len(updates))]))
     for k, u in enumerate(updates):
         r = u.reading
-        assert u.source_index == k + WINDOW - 1
+        assert u.source_index == k + SPAN - 1
         assert r.timestamp_s == pytest.approx(source.t0 + u.source_index / source.fps)
         np.testing.assert_allclose(r.pressure_kpa, expected[k], rtol=1e-4, atol=1e-4)
         assert r.force_n == pytest.approx(float(total_force_n(expected[k], TINY)), rel=1e-4)
@@ -88,7 +88,7 @@ def test_paced_source_runs_at_camera_rate_and_reports_latency(model, presses):
     stats = stats_during[-1]
     # every frame the source produced entered the window, or was skipped and counted
     assert stats.frames + stats.skipped_frames >= len(frames) - 1
-    assert stats.readings <= stats.frames - WINDOW + 1
+    assert stats.readings <= stats.frames - SPAN + 1
     assert 0.4 * fps < stats.rate_hz < 1.4 * fps  # busy CI machines: generous
     assert 0 < stats.latency_p50_s <= stats.latency_p99_s < 1.0
     assert 0 < stats.inference_p50_s <= stats.latency_p50_s + 1e-3
@@ -115,9 +115,9 @@ def test_loop_slower_than_camera_keeps_windows_consecutive(model, presses):
         assert sensor.wait(30)
     assert sensor.error is None
     assert stats[-1].rate_hz < stats[-1].source_rate_hz  # it did fall behind
-    assert len(updates) < len(frames) - WINDOW + 1
+    assert len(updates) < len(frames) - SPAN + 1
     ends = np.array([u.source_index for u in updates])
-    windows = np.stack([frames[i - WINDOW + 1 : i + 1] for i in ends])
+    windows = np.stack([frames[i - SPAN + 1 : i + 1] for i in ends])
     expected = model.predict(windows)
     for u, want in zip(updates, expected, strict=True):
         np.testing.assert_allclose(u.reading.pressure_kpa, want, rtol=1e-4, atol=1e-4)
@@ -135,7 +135,7 @@ def test_readings_iterator_and_callbacks_see_the_same_readings(model, presses):
         from_iterator = list(readings)
         remove()
     assert [r.frame_index for r in from_iterator] == [r.frame_index for r in from_callback]
-    assert len(from_iterator) == len(frames) - WINDOW + 1
+    assert len(from_iterator) == len(frames) - SPAN + 1
 
 
 def test_failing_callback_does_not_stop_sensing(model, presses):
@@ -148,13 +148,13 @@ def test_failing_callback_does_not_stop_sensing(model, presses):
     sensor.on_reading(broken)
     readings = sensor.readings()
     with sensor:
-        assert len(list(readings)) == len(frames) - WINDOW + 1
+        assert len(list(readings)) == len(frames) - SPAN + 1
     assert sensor.error is None
 
 
 def test_reference_camera_frames_go_through_reference_preprocessing(model):
     rng = np.random.default_rng(1)
-    raw = rng.integers(0, 256, size=(WINDOW + 1, 1024, 1280, 3), dtype=np.uint8)
+    raw = rng.integers(0, 256, size=(SPAN + 1, 1024, 1280, 3), dtype=np.uint8)
     pre = Preprocessor.reference((1024, 1280), TINY.image_size_px)
     sensor = LiveSensor(model, ScriptedSource(raw, channel_order="BGR"), **BACKEND).open()
     stream = sensor.readings()
@@ -218,7 +218,7 @@ def test_unplugged_camera_is_reopened_with_exponential_backoff(model, presses):
     assert "no_signal" in states and states[-1] == "ended"
     assert states.index("no_signal") < len(states) - 1 - states[::-1].index("ok")  # recovered
     # 25 frames before the loss, 35 after; the window refills after the reconnect
-    assert len(readings) == (25 - WINDOW + 1) + (len(frames) - 25 - WINDOW + 1)
+    assert len(readings) == (25 - SPAN + 1) + (len(frames) - 25 - SPAN + 1)
 
 
 def test_stalled_source_shows_no_signal_then_recovers(model, presses):
@@ -241,7 +241,7 @@ def test_video_file_source_ends_or_loops(model, presses, tmp_path):
     with LiveSensor(model, str(video), **BACKEND) as sensor:
         readings = list(sensor.readings())
     assert sensor.status.state == "ended" and "press.avi" in sensor.status.message
-    assert 1 <= len(readings) <= 30 - WINDOW + 1
+    assert 1 <= len(readings) <= 30 - SPAN + 1
     got = []
     with LiveSensor(model, str(video), replace(TORCH, loop=True)) as sensor:
         for reading in sensor.readings():
@@ -267,14 +267,14 @@ def test_recording_to_h5_keeps_every_reading(model, presses, tmp_path):
         assert sensor.wait(30)
         assert sensor.stop_recording() == path
     with open_readings(path) as rf:
-        assert len(rf) == len(seen) == len(frames) - WINDOW + 1
+        assert len(rf) == len(seen) == len(frames) - SPAN + 1
         assert rf.geometry == TINY
         assert rf.provenance["source"] == "scripted"
         np.testing.assert_array_equal(rf.timestamp_s, [u.reading.timestamp_s for u in seen])
         np.testing.assert_allclose(rf.force_n, [u.reading.force_n for u in seen], rtol=1e-6)
         np.testing.assert_allclose(rf.cop_mm, [u.reading.cop_mm for u in seen], rtol=1e-5)
         np.testing.assert_allclose(rf.latency_s, [u.latency_s for u in seen], rtol=1e-5)
-        np.testing.assert_array_equal(rf.reference_force_n, force[WINDOW - 1 :].astype(np.float32))
+        np.testing.assert_array_equal(rf.reference_force_n, force[SPAN - 1 :].astype(np.float32))
         np.testing.assert_array_equal(rf.pressure_kpa[7], seen[7].reading.pressure_kpa)
 
 
@@ -300,7 +300,7 @@ def test_run_live_headless_stops_after_n_frames(model, presses, tmp_path):
     assert f"wrote {tmp_path / 'r.h5'}" in lines
     with open_readings(tmp_path / "r.h5") as rf:
         assert len(rf) == 10  # every reading from the first one
-        assert rf.frame_index[0] == WINDOW - 1
+        assert rf.frame_index[0] == SPAN - 1
 
 
 def test_viewer_state_events_and_record_endpoint(model, presses, tmp_path):

@@ -1,23 +1,21 @@
-"""Live sources are cameras: what a --source names, and the deprecated 0.2 source names."""
+"""Live sources are cameras: what a --source names."""
 
 from __future__ import annotations
 
 import math
-import time
-import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from live_helpers import (
-    BACKEND,
-    WINDOW,
+    TORCH,
     press_frames,
     tiny_model,
     write_video,
 )
 
 from beadsight.devices import Camera, CameraEndedError, OpenCVCamera
-from beadsight.devices.virtual import PlaybackCamera, SimCamera, VirtualCamera
+from beadsight.devices.virtual import SimCamera, VirtualCamera
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.sources import open_camera
 
@@ -49,7 +47,7 @@ def test_live_reads_a_looping_video_file_through_opencv(tmp_path):
     frames, _ = press_frames(presses=1, per_press=20)
     video = write_video(tmp_path / "loop.avi", frames, fps=120)
     got = []
-    with LiveSensor(tiny_model(), str(video), loop=True, **BACKEND) as sensor:
+    with LiveSensor(tiny_model(), str(video), replace(TORCH, loop=True)) as sensor:
         assert isinstance(sensor.source, OpenCVCamera) and sensor.source.loop
         for reading in sensor.readings():
             got.append(reading)
@@ -58,58 +56,6 @@ def test_live_reads_a_looping_video_file_through_opencv(tmp_path):
     assert sensor.error is None
     assert sensor.source.stats.captured > len(frames)
     assert np.all(np.diff([r.timestamp_s for r in got]) > 0)
-
-
-class _OldStyleSource:
-    """Written for beadsight 0.2: open / read_new / close, SourceFrame, SourceEnded."""
-
-    def __init__(self, frames):
-        from beadsight.live.sources import FrameSource, SourceEnded, SourceFrame
-
-        class Old(FrameSource):
-            name = "old-style"
-
-            def open(self):
-                self.i = 0
-
-            def read_new(self, after_index, timeout_s, limit=1):
-                if self.i >= len(frames):
-                    raise SourceEnded(f"old-style ended after {self.i} frames")
-                self.i += 1
-                t = time.time() - 10 + self.i / 30
-                return [SourceFrame(frames[self.i - 1], t, self.i - 1, "RGB", float(self.i))]
-
-            def close(self):
-                pass
-
-        self.source = Old()
-
-
-def test_deprecated_source_names_still_work():
-    frames, force = press_frames(presses=1, per_press=25)
-    with pytest.warns(DeprecationWarning) as caught:
-        old = _OldStyleSource(frames).source
-    assert {str(w.message).split(" is ")[0] for w in caught} == {
-        f"beadsight.live.sources.{name}" for name in ("FrameSource", "SourceEnded", "SourceFrame")
-    }
-    assert "use beadsight.devices.CameraEndedError" in " ".join(str(w.message) for w in caught)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        from beadsight.live.sources import PacedSource, SimSource
-
-        paced = PacedSource("paced", lambda: zip(frames, force, strict=True), 30.0)
-        sim = SimSource(64, fps=10, seed=2)
-    assert isinstance(paced, PlaybackCamera) and paced.name == "paced"
-    assert isinstance(sim, SimCamera) and sim.name == "sim (seed 2)"
-    sensor = LiveSensor(tiny_model(), old, **BACKEND).open()
-    stream = sensor.updates()
-    with sensor:
-        updates = list(stream)
-    assert sensor.status.state == "ended" and "old-style ended after 25 frames" in (
-        sensor.status.message
-    )
-    assert len(updates) == len(frames) - WINDOW + 1
-    assert [u.reference_force_n for u in updates] == [float(i + 1) for i in range(WINDOW - 1, 25)]
 
 
 def test_sim_camera_ends_after_its_presses_or_loops():

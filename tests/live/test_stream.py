@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from live_helpers import (
     BACKEND,
+    SPAN,
     TINY,
     TORCH,
-    WINDOW,
     ScriptedSource,
     press_frames,
     wait_until,
@@ -26,7 +26,8 @@ from live_helpers import (
 
 from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
-from beadsight.live.sensor import LiveSensor, LiveStatus
+from beadsight.live.listeners import LiveStatus
+from beadsight.live.sensor import LiveSensor
 from beadsight.live.stream import StreamServer, encode_reading
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
@@ -48,7 +49,7 @@ def test_client_example_does_not_import_beadsight():
 
 def test_separate_client_process_receives_the_readings(model):
     frames, force = press_frames(presses=2, per_press=30)
-    source = ScriptedSource(frames, forces=force, stall_after=WINDOW - 1)
+    source = ScriptedSource(frames, forces=force, stall_after=SPAN - 1)
     published = []
     sensor = LiveSensor(model, source, **BACKEND)
     sensor.on_reading(published.append)
@@ -141,7 +142,7 @@ def test_client_that_never_reads_does_not_slow_the_sensor(model):
                 sensor.add_listener(server)
                 assert sensor.wait(60)
             # all 120 - 14 readings were produced although nobody read ~28 MB of maps
-            assert sensor.stats().readings == len(frames) - WINDOW + 1
+            assert sensor.stats().readings == len(frames) - SPAN + 1
 
 
 def test_port_in_use_is_a_clear_error():

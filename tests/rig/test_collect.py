@@ -483,7 +483,7 @@ def test_end_to_end_collect_process_train_evaluate(tmp_path):
         "8",
         "--batch-size",
         "4",
-        "--window",
+        "--frames",
         "5",
         "--threads",
         "1",

@@ -13,8 +13,9 @@ from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
 from beadsight import load_checkpoint
 from beadsight.cli import main
 from beadsight.config import ConfigError, SensorGeometry
-from beadsight.data.dataset import DatasetError, DatasetWriter
+from beadsight.data.dataset import DatasetError
 from beadsight.data.reference_file import export_reference
+from beadsight.data.writer import DatasetWriter
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.train.calibrate import calibrate
 from beadsight.train.calibrate_config import CalibrateConfig

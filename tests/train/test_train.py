@@ -20,7 +20,8 @@ from beadsight import load_checkpoint
 from beadsight.checkpoint import CheckpointError, read_checkpoint_file
 from beadsight.cli import main
 from beadsight.config import ConfigError, SensorGeometry
-from beadsight.data.dataset import DatasetError, DatasetWriter, open_dataset
+from beadsight.data.dataset import DatasetError, open_dataset
+from beadsight.data.writer import DatasetWriter
 from beadsight.geometry import disk_pressure_kpa
 from beadsight.train.config import TrainConfig, resolve_train_config
 from beadsight.train.distributed import Distributed

@@ -110,7 +110,6 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         for name, help, *extra in TRAIN_FLAGS
     ]
     add_fields(p, TrainConfig, rows, override=True)
-    p.add_argument("--window", type=int, default=None, help=argparse.SUPPRESS)  # old --frames
 
 
 def _choices(choices: dict, name: str) -> dict:
@@ -129,8 +128,6 @@ def _train(args: argparse.Namespace) -> int:
     from beadsight.train.trainer import train
 
     overrides = field_values(args, TrainConfig)
-    if args.window is not None:  # the old name of --frames: resolve_train_config warns
-        overrides["window"] = args.window
     config = resolve_train_config(overrides, args.config)
     run = train(config)
     if os.environ.get("RANK", "0") != "0":  # under torchrun, rank 0 reports

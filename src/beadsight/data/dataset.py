@@ -286,18 +286,3 @@ def _fields(f: h5py.File, path: Path, frames: h5py.Dataset, load) -> dict[str, A
         "pixel_mean": f.attrs.get("pixel_mean"),
         "pixel_std": f.attrs.get("pixel_std"),
     }
-
-
-def __getattr__(name: str) -> Any:
-    """Names that moved out of this module, still importable from it: ``DatasetWriter``
-    (:mod:`beadsight.data.writer`) and ``import_reference``
-    (:mod:`beadsight.data.reference_file`)."""
-    if name == "DatasetWriter":
-        from beadsight.data.writer import DatasetWriter
-
-        return DatasetWriter
-    if name == "import_reference":
-        from beadsight.data.reference_file import import_reference
-
-        return import_reference
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

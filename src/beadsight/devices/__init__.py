@@ -81,11 +81,6 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    if name == "Reading":  # its name before 0.2 (beadsight.Reading was the predictor's)
-        from beadsight._compat import deprecated
-
-        deprecated("beadsight.devices.Reading", "beadsight.devices.ScaleReading")
-        return ScaleReading
     if name in _VIRTUAL:  # the virtual twins need pty (POSIX) and, for the rig, the simulator
         from beadsight.devices import virtual
 

@@ -261,12 +261,3 @@ class DeviceContext:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def __getattr__(name: str):
-    if name == "Reading":  # its name before 0.2
-        from beadsight._compat import deprecated
-
-        deprecated("beadsight.devices.base.Reading", "beadsight.devices.base.ScaleReading")
-        return ScaleReading
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -418,13 +418,3 @@ class BufferedCamera(DeviceContext):
             logger.warning(
                 "%s: %.0f ms capture gap, ~%d frame(s) dropped", self.name, gap_s * 1e3, lost
             )
-
-
-def __getattr__(name: str):
-    if name == "OpenCVCamera":  # it moved to beadsight.devices.opencv
-        from beadsight._compat import deprecated
-        from beadsight.devices.opencv import OpenCVCamera
-
-        deprecated("beadsight.devices.camera.OpenCVCamera", "beadsight.devices.OpenCVCamera")
-        return OpenCVCamera
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -300,7 +300,7 @@ def _split_text(metrics: Mapping) -> str:
 
 def evaluation_summary(metrics: Mapping) -> str:
     """One paragraph: which model, on what data, how many frames (and the coverage)."""
-    span = metrics.get("span", metrics.get("window"))
+    span = metrics.get("span")
     model = f"The model {Path(str(metrics.get('checkpoint', '?'))).name}"
     if span is not None:
         model += f" ({metrics.get('image_size', '?')} px frames, windows of {span} frames)"

@@ -10,6 +10,5 @@ machine          CPU threads, the cache folder, a key for this machine
 exported         the exported-file format: write and read ONNX / OpenVINO files
 export           export a checkpoint and check the file against torch
 predictor        ``PressurePredictor``: frames in, ``PressureReading`` out
-legacy_backends  the names of 0.1's ``beadsight.backends``, for one release
 ===============  ================================================================
 """

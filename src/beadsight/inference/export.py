@@ -13,8 +13,6 @@ Using an exported ONNX file without beadsight (only numpy and onnxruntime)::
     frames = np.zeros((1, t, s, s, 3), np.uint8)  # the last t RGB frames, oldest first
     pressure_kpa = session.run(None, {"frames": frames})[0][0]  # (S, S) float32 kPa
 
-(Files exported by beadsight 0.1 name the frame count ``window`` instead of ``frames``.)
-
 Every export runs a parity check against the torch model on the probe windows
 (:func:`beadsight.inference.parity.probe_windows`) and refuses to keep a file that
 disagrees: fp32 within ``max(1e-4 kPa, 1e-5 x peak)`` (float32 rounding grows
@@ -33,17 +31,8 @@ from beadsight.errors import ConfigError
 from beadsight.inference.config import EXPORT_FORMATS as FORMATS
 from beadsight.inference.config import EXPORT_PRECISIONS
 from beadsight.inference.exported import (
-    FINGERPRINT_KEY,
-    INPUT_NAME,
-    META_KEY,
-    ONNX_OPSET,
-    OUTPUT_NAME,
-    PRECISION_KEY,
     ExportError,
-    check_exported_matches,
-    exported_metadata,
     model_fingerprint,
-    read_exported_metadata,
     write_onnx,
     write_openvino,
 )
@@ -51,26 +40,6 @@ from beadsight.inference.parity import PARITY_TOLERANCE, ParityTolerance, check_
 from beadsight.inference.select import open_exported
 
 log = logging.getLogger(__name__)
-
-__all__ = [  # the file-format names are re-exported for code written against 0.1
-    "EXPORT_PRECISIONS",
-    "FINGERPRINT_KEY",
-    "FORMATS",
-    "INPUT_NAME",
-    "META_KEY",
-    "ONNX_OPSET",
-    "OUTPUT_NAME",
-    "PRECISION_KEY",
-    "ExportError",
-    "ExportReport",
-    "check_exported_matches",
-    "export_model",
-    "exported_metadata",
-    "model_fingerprint",
-    "read_exported_metadata",
-    "write_onnx",
-    "write_openvino",
-]
 
 FP32_ABS_TOLERANCE_KPA = 1e-4  # export parity bound for fp32 files
 FP32_REL_TOLERANCE = 1e-5  # ... or this fraction of the probe's peak, if larger (float32 rounding)

@@ -35,7 +35,6 @@ import torch
 
 from beadsight import __version__
 from beadsight.checkpoint import PressureModel
-from beadsight.config import ModelConfig
 from beadsight.errors import BeadSightError
 from beadsight.files import atomic_write, atomic_write_bytes
 
@@ -62,27 +61,13 @@ def require(module: str, extra: str):
 
 
 # --- metadata -----------------------------------------------------------------------
-def _fingerprint(meta_json: str, model: PressureModel) -> str:
-    h = hashlib.sha256(meta_json.encode())
+def model_fingerprint(model: PressureModel) -> str:
+    """sha256 over the metadata JSON and every weight tensor (sorted by name)."""
+    h = hashlib.sha256(model.meta.to_json().encode())
     for name, tensor in sorted(model.module.net.state_dict().items()):
         h.update(name.encode())
         h.update(tensor.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
     return h.hexdigest()
-
-
-def model_fingerprint(model: PressureModel) -> str:
-    """sha256 over the metadata JSON and every weight tensor (sorted by name)."""
-    return _fingerprint(model.meta.to_json(), model)
-
-
-def _legacy_fingerprints(model: PressureModel) -> set[str]:
-    """Fingerprints beadsight 0.1 gave this model (metadata format 1: ``window`` for
-    ``frames``), so that files exported then still match their checkpoint."""
-    meta = json.loads(model.meta.to_json())
-    meta["format_version"] = 1
-    renamed = {new: old for old, new in ModelConfig._renamed.items()}
-    meta["model"] = {renamed.get(k, k): v for k, v in meta["model"].items()}
-    return {_fingerprint(json.dumps(meta, sort_keys=True), model)}
 
 
 def exported_metadata(model: PressureModel, precision: str = "fp32") -> dict[str, str]:
@@ -128,7 +113,7 @@ def read_exported_metadata(path: str | Path) -> dict[str, str]:
 def check_exported_matches(path: str | Path, model: PressureModel) -> dict[str, str]:
     """Raise :class:`ExportError` unless ``path`` was exported from ``model``'s weights."""
     meta = read_exported_metadata(path)
-    if meta[FINGERPRINT_KEY] in {model_fingerprint(model), *_legacy_fingerprints(model)}:
+    if meta[FINGERPRINT_KEY] == model_fingerprint(model):
         return meta
     theirs = json.loads(meta[META_KEY])
     mine = json.loads(model.meta.to_json())

@@ -59,17 +59,14 @@ evaluation's IoU definition). ``has_contact`` is ``force_n >= contact_force_n``
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from beadsight._compat import deprecated, renamed_attribute
 from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.config import ContactThresholds, SensorGeometry
 from beadsight.evaluation.metrics import otsu_masks
@@ -90,7 +87,6 @@ DEFAULT_MAX_GAP_FRAMES = 3  # missing frames tolerated before on_gap applies (10
 GAP_TOLERANCE = 1.5  # dt below this many frame periods is jitter, not a dropped frame
 GAP_POLICIES = ("reset", "hold", "ignore")
 CONTACT_METHODS = ("threshold", "otsu")
-_LEGACY_OPTIONS = ("precision", "device", "exported_model", "backend_options")
 
 
 @dataclass(frozen=True)
@@ -174,8 +170,7 @@ class PressurePredictor(Closes):
     model: a loaded :class:`~beadsight.checkpoint.PressureModel`.
     backend: a built :class:`~beadsight.inference.runtimes.Backend` for ``model``
         (default: eager torch in fp32 on the model's device).
-    settings: :class:`PredictorSettings`; keyword arguments override its fields
-        (``PressurePredictor(model, backend, on_gap="hold")``).
+    settings: :class:`PredictorSettings` (default: ``PredictorSettings()``).
 
     To load a checkpoint and choose the fastest backend that agrees with torch, use
     :meth:`from_checkpoint`. Not thread-safe: call :meth:`update` from one thread.
@@ -185,15 +180,20 @@ class PressurePredictor(Closes):
         self,
         model: PressureModel,
         backend: Backend | None = None,
-        *legacy: Any,
+        *,
         settings: PredictorSettings | None = None,
-        **options: Any,
     ):
-        if legacy or not isinstance(model, PressureModel) or isinstance(backend, str):
-            model, backend = _legacy_build(model, backend, legacy, options)
-        elif any(k in options for k in _LEGACY_OPTIONS):
-            model, backend = _legacy_build(model, backend, (), options)
-        settings = dataclasses.replace(settings or PredictorSettings(), **options)
+        if not isinstance(model, PressureModel):
+            raise TypeError(
+                f"PressurePredictor takes a loaded PressureModel, got {type(model).__name__}; "
+                "to load a checkpoint file use PressurePredictor.from_checkpoint(path, ...)"
+            )
+        if backend is not None and not isinstance(backend, Backend):
+            raise TypeError(
+                f"backend must be a built Backend or None, got {type(backend).__name__}; "
+                "to choose a runtime by name use PressurePredictor.from_checkpoint(model, name)"
+            )
+        settings = settings if settings is not None else PredictorSettings()
         self.model = model
         self.backend = backend if backend is not None else TorchBackend(model, device=model.device)
         self.settings = settings
@@ -223,7 +223,6 @@ class PressurePredictor(Closes):
         cache_dir: str | Path | None = "default",
         threads: int | None = None,
         settings: PredictorSettings | None = None,
-        **options: Any,
     ) -> PressurePredictor:
         """Load ``checkpoint`` (a path, or an already loaded model) and build its backend.
 
@@ -233,13 +232,13 @@ class PressurePredictor(Closes):
         torch/compile/cuda backends. exported_model: an exported ``.onnx`` / OpenVINO
         ``.xml`` file to run, refused unless it was exported from this checkpoint.
         cache_dir, threads: see :func:`beadsight.inference.select.create_backend`.
-        settings and ``options``: as for the constructor.
+        settings: as for the constructor.
         """
         model = checkpoint if isinstance(checkpoint, PressureModel) else load_checkpoint(checkpoint)
         runtime = create_backend(
             model, backend, precision, device, exported_model, cache_dir, threads
         )
-        return cls(model, runtime, settings=settings, **options)
+        return cls(model, runtime, settings=settings)
 
     # --- state ----------------------------------------------------------------------
     def reset(self) -> None:
@@ -256,8 +255,6 @@ class PressurePredictor(Closes):
     def ready(self) -> bool:
         """True when the window holds span frames (the next update returns a reading)."""
         return self._filled >= self.span
-
-    window = renamed_attribute("PressurePredictor", "window", "span")
 
     @property
     def frame_period_s(self) -> float:
@@ -419,45 +416,3 @@ class PressurePredictor(Closes):
 
 def _default(value: float | None, default: float) -> float:
     return default if value is None else value
-
-
-def _legacy_build(model: Any, backend: Any, legacy: tuple, options: dict[str, Any]):
-    """The 0.1 call ``PressurePredictor(path_or_model, "auto", precision, device, ...,
-    exported_model=..., backend_options=...)``: load and choose as
-    :meth:`PressurePredictor.from_checkpoint` does (deprecated)."""
-    deprecated(
-        "PressurePredictor(checkpoint, backend name, precision, ...)",
-        "PressurePredictor.from_checkpoint(checkpoint, backend, precision, ...)",
-    )
-    names = ("precision", "device")
-    if len(legacy) > len(names):
-        raise TypeError(f"PressurePredictor: too many positional arguments {legacy!r}")
-    build = {name: options.pop(name) for name in _LEGACY_OPTIONS if name in options}
-    build.update(zip(names, legacy, strict=False))
-    extra = build.pop("backend_options", None) or {}
-    model = model if isinstance(model, PressureModel) else load_checkpoint(model)
-    if isinstance(backend, Backend):
-        return model, backend
-    runtime = create_backend(
-        model,
-        "auto" if backend is None else backend,
-        build.get("precision", "auto"),
-        build.get("device"),
-        build.get("exported_model"),
-        **extra,
-    )
-    return model, runtime
-
-
-def __getattr__(name: str) -> Any:
-    if name == "Reading":
-        deprecated(f"{__name__}.Reading", f"{__name__}.PressureReading")
-        return PressureReading
-    if name == "otsu_threshold":
-        from beadsight.evaluation import metrics
-
-        deprecated(f"{__name__}.otsu_threshold", "beadsight.evaluation.metrics.otsu_thresholds")
-        return lambda values, bins=metrics.OTSU_BINS: float(
-            metrics.otsu_thresholds(np.asarray(values, dtype=np.float64).reshape(1, -1), bins)[0]
-        )
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -34,7 +34,7 @@ from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.errors import ConfigError
 from beadsight.geometry import disk_pressure_kpa
 from beadsight.inference.parity import check_parity, probe_windows
-from beadsight.inference.predictor import PressurePredictor
+from beadsight.inference.predictor import PredictorSettings, PressurePredictor
 
 if TYPE_CHECKING:
     from beadsight.live.settings import LiveSettings
@@ -298,7 +298,12 @@ def bench_live(
     else:
         source = "given frames"
     predictor = PressurePredictor.from_checkpoint(
-        model, backend, precision, device, **(backend_options or {}), on_gap="ignore"
+        model,
+        backend,
+        precision,
+        device,
+        **(backend_options or {}),
+        settings=PredictorSettings(on_gap="ignore"),
     )
     try:
         throughput = run_max_throughput(predictor, source_frames, frames)

@@ -40,7 +40,6 @@ from beadsight.live import ros_messages as msg
 from beadsight.live.readings import open_readings
 from beadsight.live.recorder import PartialWriter, ReadingLike
 from beadsight.live.ros_messages import (
-    FRAME_ID,  # noqa: F401 (importable from here, as before)
     image_message,
     point_message,
     unix_ns,

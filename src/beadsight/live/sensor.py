@@ -3,9 +3,10 @@ the camera rate, for robot code, the web viewer, the network stream and recorder
 
 ::
 
-    from beadsight.live.sensor import LiveSensor, LiveSettings
+    from beadsight.live.sensor import LiveSensor
+    from beadsight.live.settings import LiveSettings
 
-    settings = LiveSettings(backend="auto")  # how it runs (beadsight.live.settings)
+    settings = LiveSettings(backend="auto")  # how it runs
     with LiveSensor("model.pt", source=0, settings=settings) as sensor:  # or "video.avi", "sim"
         for reading in sensor.readings():  # beadsight.inference.predictor.PressureReading
             print(reading.timestamp_s, reading.force_n, reading.cop_mm)
@@ -19,13 +20,13 @@ sensing thread: newest frame -> preprocessing ->
 sensing thread and must return quickly; the ones shipped here only copy a reference into
 their own queue and do their work (encoding, sending, writing) on their own threads.
 
-Faults. A camera that disappears (unplugged, driver error) puts the sensor in the
-``no_signal`` state and is reopened with exponential backoff
-(:data:`RECONNECT_INITIAL_S` doubling up to :data:`RECONNECT_MAX_S`); a video file
-that ends finishes the stream (state ``ended``) unless ``loop=True``; a source that
-stops delivering frames for :data:`NO_SIGNAL_AFTER_S` is ``no_signal`` until frames
-return. Frames whose size does not fit the model, and a checkpoint the chosen backend
-refuses, are errors raised by :meth:`LiveSensor.start`, before any thread runs.
+Faults (timings in :mod:`~beadsight.live.settings`). A camera that disappears
+(unplugged, driver error) puts the sensor in the ``no_signal`` state and is reopened with
+exponential backoff (``RECONNECT_INITIAL_S`` doubling up to ``RECONNECT_MAX_S``); a video
+file that ends finishes the stream (state ``ended``) unless ``loop=True``; a source that
+stops delivering frames for ``NO_SIGNAL_AFTER_S`` is ``no_signal`` until frames return.
+Frames whose size does not fit the model, and a checkpoint the chosen backend refuses, are
+errors raised by :meth:`LiveSensor.start`, before any thread runs.
 
 The rest of live sensing: :mod:`~beadsight.live.settings` (:class:`LiveSettings`),
 :mod:`~beadsight.live.listeners` (what the thread produces, and who receives it),
@@ -59,40 +60,25 @@ from beadsight.inference.predictor import PressurePredictor, PressureReading
 from beadsight.live.health import HealthReport
 from beadsight.live.listeners import (
     READING_QUEUE_SIZE,
-    STATES,
     CallbackListener,
     LiveListener,
     LiveStatus,
     LiveUpdate,
     UpdateQueue,
 )
-from beadsight.live.recorder import RECORDER_QUEUE_SIZE, RecordingSlot, open_recording_writer
+from beadsight.live.recorder import RecordingSlot
 from beadsight.live.rest import load_rest
-from beadsight.live.settings import (
-    FIRST_FRAME_TIMEOUT_S,
-    NO_SIGNAL_AFTER_S,
-    RECONNECT_INITIAL_S,
-    RECONNECT_MAX_S,
-    LiveSettings,
-    legacy_settings,
-)
+from beadsight.live.settings import LiveSettings
 from beadsight.live.sources import (
     frame_converter,
     open_camera,
 )
-from beadsight.live.stats import STATS_WINDOW_S, LiveStats, RateMeter
+from beadsight.live.stats import LiveStats, RateMeter
 from beadsight.live.watch import SensorWatch
 
 logger = logging.getLogger(__name__)
 
-# fmt: off
-__all__ = [  # what this module held before it was split (beadsight.live.sensor.X keeps working)
-    "FIRST_FRAME_TIMEOUT_S", "NO_SIGNAL_AFTER_S", "READING_QUEUE_SIZE",
-    "RECONNECT_INITIAL_S", "RECONNECT_MAX_S", "RECORDER_QUEUE_SIZE", "STATES",
-    "STATS_WINDOW_S", "LiveListener", "LiveSensor", "LiveSettings", "LiveStats",
-    "LiveStatus", "LiveUpdate", "UpdateQueue", "open_recording_writer",
-]
-# fmt: on
+__all__ = ["LiveSensor"]
 
 
 # --- the sensor ------------------------------------------------------------------------
@@ -106,8 +92,7 @@ class LiveSensor:
         (built by :meth:`PressurePredictor.from_checkpoint
         <beadsight.inference.predictor.PressurePredictor.from_checkpoint>`; one that
         cannot run this checkpoint is refused by :meth:`start`), preprocessing, the
-        source's options, fault timing, ``max_readings``. The keywords of beadsight 0.1
-        (``backend=``, ``fps=``, ...) are still accepted, deprecated.
+        source's options, fault timing, ``max_readings`` (default: ``LiveSettings()``).
 
     Use as a context manager (``with LiveSensor(...) as sensor``) or call :meth:`start`
     / :meth:`stop`. :meth:`open` does everything :meth:`start` does except starting the
@@ -119,10 +104,10 @@ class LiveSensor:
         checkpoint: str | Path | PressureModel | None = None,
         source: int | str | Path | Camera = "sim",
         settings: LiveSettings | None = None,
-        *legacy_args: Any,
-        **legacy_kwargs: Any,
     ):
-        settings = legacy_settings(settings, legacy_args, legacy_kwargs)
+        if settings is not None and not isinstance(settings, LiveSettings):
+            raise TypeError(f"settings must be LiveSettings or None, got {type(settings).__name__}")
+        settings = settings if settings is not None else LiveSettings()
         self.settings = settings
         self.max_readings = settings.max_readings
         self._checkpoint = checkpoint if checkpoint is not None else shipped_model_path()

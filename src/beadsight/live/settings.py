@@ -9,12 +9,10 @@ fault timing.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from beadsight._compat import deprecated
 from beadsight.config import ConfigError
 from beadsight.inference.backend import BACKENDS, PRECISIONS
 from beadsight.inference.frames import check_preprocess
@@ -107,53 +105,3 @@ def _positive(name: str, value: float) -> None:
         raise ConfigError(f"{name} must be a number > 0, got {value!r}")
     if not math.isfinite(value):
         raise ConfigError(f"{name} must be finite, got {value!r}")
-
-
-# --- beadsight 0.1's LiveSensor keywords --------------------------------------------
-_RENAMED = {"fps": "source_fps"}
-_SAME = ("backend", "precision", "preprocess", "loop", "seed", "first_frame_timeout_s",
-         "no_signal_after_s", "max_readings")  # fmt: skip
-
-
-def legacy_settings(
-    settings: LiveSettings | str | None, args: tuple, kwargs: dict[str, Any]
-) -> LiveSettings:
-    """``settings`` with the 0.1 keywords of ``LiveSensor`` applied (deprecated): backend
-    and precision (also positional), preprocess (None: auto), fps, loop, seed,
-    predictor_options, first_frame_timeout_s, no_signal_after_s, reconnect_backoff_s,
-    max_readings."""
-    if isinstance(settings, str):  # 0.1: LiveSensor(checkpoint, source, backend, precision)
-        args, settings = (settings, *args), None
-    if len(args) > 2:
-        raise TypeError(f"LiveSensor: too many positional arguments {args!r}")
-    kwargs = {**dict(zip(("backend", "precision"), args, strict=False)), **kwargs}
-    if not kwargs:
-        return settings or LiveSettings()
-    deprecated("LiveSensor(..., backend=..., fps=..., ...)", "LiveSensor(..., LiveSettings(...))")
-    changes: dict[str, Any] = {}
-    for key, value in kwargs.items():
-        if key in _SAME:
-            changes[key] = "auto" if key == "preprocess" and value is None else value
-        elif key in _RENAMED:
-            changes[_RENAMED[key]] = value
-        elif key == "reconnect_backoff_s":
-            changes["reconnect_initial_s"], changes["reconnect_max_s"] = value
-        elif key == "predictor_options":
-            changes.update(_predictor_options(settings or LiveSettings(), dict(value or {})))
-        else:
-            raise TypeError(f"LiveSensor got an unexpected keyword argument {key!r}")
-    return dataclasses.replace(settings or LiveSettings(), **changes)
-
-
-def _predictor_options(base: LiveSettings, options: dict[str, Any]) -> dict[str, Any]:
-    """0.1's ``predictor_options`` (PressurePredictor keywords) as LiveSettings fields."""
-    out: dict[str, Any] = {}
-    for key in ("device", "exported_model"):
-        if key in options:
-            out[key] = options.pop(key)
-    backend_options = options.pop("backend_options", None) or {}
-    if "threads" in backend_options:
-        out["threads"] = backend_options["threads"]
-    if options:
-        out["predictor"] = dataclasses.replace(base.predictor, **options)
-    return out

@@ -12,11 +12,6 @@ ended), :class:`~beadsight.devices.DeviceTimeoutError` (no frame for a while).
 
 :func:`frame_converter` decides, from the first frame, how frames become the model's
 input: (S, S, 3) uint8 RGB.
-
-``FrameSource``, ``PacedSource``, ``SimSource``, ``CameraSource``, ``SourceFrame``,
-``SourceDisconnected``, ``SourceEnded`` and ``open_source`` (the live-only frame
-sources of beadsight 0.2) still import from here, deprecated
-(:mod:`beadsight.live.legacy_sources`).
 """
 
 from __future__ import annotations
@@ -35,16 +30,6 @@ from beadsight.errors import BeadSightError
 logger = logging.getLogger(__name__)
 
 DEFAULT_SIM_FPS = 30.0  # the reference camera's rate
-_LEGACY = {  # deprecated 0.2 names, in beadsight.live.legacy_sources
-    "CameraSource",
-    "FrameSource",
-    "PacedSource",
-    "SimSource",
-    "SourceDisconnected",
-    "SourceEnded",
-    "SourceFrame",
-    "open_source",
-}
 
 
 def open_camera(
@@ -110,13 +95,3 @@ def frame_converter(
         first.image, first.channel_order, image_size, preprocess, f"source {source_name}"
     )
     return lambda frame: convert(frame.image)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LEGACY:
-        from beadsight import _compat
-        from beadsight.live import legacy_sources
-
-        _compat.deprecated(f"beadsight.live.sources.{name}", legacy_sources.REPLACED_BY[name])
-        return getattr(legacy_sources, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

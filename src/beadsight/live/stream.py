@@ -65,7 +65,7 @@ def encode_header(header: dict[str, Any], payload: bytes = b"") -> bytes:
 
 
 def encode_reading(update: Any, seq: int, skipped: int = 0) -> bytes:
-    """A ``reading`` message for a :class:`beadsight.live.sensor.LiveUpdate`."""
+    """A ``reading`` message for a :class:`beadsight.live.listeners.LiveUpdate`."""
     return reading_header(update, seq, skipped) + map_payload(update)
 
 
@@ -259,7 +259,7 @@ class _Client:
 class StreamServer(Closes):
     """Serve readings to TCP clients on ``host:port`` (port 0 = pick a free one).
 
-    A :class:`beadsight.live.sensor.LiveListener`: ``sensor.add_listener(server)``. The
+    A :class:`beadsight.live.listeners.LiveListener`: ``sensor.add_listener(server)``. The
     sensing thread only queues a reference per client; each client's thread encodes and
     sends (about 0.1 ms for a 256x256 map), never a reading older than ``max_age_s``
     (since it was produced; slow clients skip readings instead, see the module docstring).

@@ -368,23 +368,3 @@ def collect_with_virtual_rig(
         }
         with open_devices(devices, rig.envelope, camera=rig.camera) as (printer, scale, camera):
             return collect(printer, scale, camera, plan, out, metadata=meta, **kwargs)
-
-
-_MOVED = {  # names beadsight.rig.collect held in 0.2 -> where they live now
-    "REFERENCE_CENTRE_XY_MM": "beadsight.config",
-    "DWELL_SLICE_MS": "beadsight.rig.session",
-    "FRESH_FORCE_FRACTION": "beadsight.rig.session",
-    "CAMERA_READ_TIMEOUT_S": "beadsight.rig.recorder",
-    "RECORDER_JOIN_S": "beadsight.rig.recorder",
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _MOVED:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    from beadsight._compat import deprecated
-
-    deprecated(f"beadsight.rig.collect.{name}", f"{_MOVED[name]}.{name}")
-    return getattr(importlib.import_module(_MOVED[name]), name)

@@ -15,7 +15,7 @@ See ``docs/simulator.md``.
 
 from __future__ import annotations
 
-from beadsight._compat import lazy_names
+from beadsight.lazy import lazy_names
 
 # The names above, each loaded from its module on first use (so reading SimConfig does
 # not load the simulator, scipy or h5py).

@@ -22,7 +22,6 @@ from beadsight.config import (
     ModelConfig,
     _Serializable,
     load_toml,
-    renamed_fields,
     require_paths,
 )
 from beadsight.files import read_json_object
@@ -75,7 +74,6 @@ _NON_NEGATIVE = ("lr", "lr_min", "weight_decay", "noise_std", "checkpoint_every_
 _OPTIONAL_POSITIVE = ("budget_min", "val_every_min")  # None, or a number > 0
 
 
-@renamed_fields(window="frames")
 @dataclass(frozen=True)
 class TrainConfig(_Serializable):
     """Everything a training run depends on; stored as the run's config.json."""
@@ -238,14 +236,12 @@ def resolve_train_config(
     if config_file is not None:
         raw = load_toml(config_file)
         file_values = raw["train"] if isinstance(raw.get("train"), dict) else raw
-        file_values = TrainConfig.upgrade_keys(file_values, source=str(config_file))
         unknown = sorted(set(file_values) - names)
         if unknown:
             raise ConfigError(
                 f"{config_file}: unknown training setting(s) {unknown}; known: {sorted(names)}"
             )
     given = {k: v for k, v in overrides.items() if v is not None}
-    given = TrainConfig.upgrade_keys(given, source="training settings")
     unknown = sorted(set(given) - names)
     if unknown:
         raise ConfigError(f"unknown training setting(s) {unknown}")
@@ -275,4 +271,4 @@ def _stored_config(early: Mapping[str, Any], names: set[str]) -> dict[str, Any]:
     if not stored.is_file():
         return {}
     data = read_json_object(stored, ConfigError, "a JSON object of training settings")
-    return {k: v for k, v in TrainConfig.upgrade_keys(data).items() if k in names}
+    return {k: v for k, v in data.items() if k in names}

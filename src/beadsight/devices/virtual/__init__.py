@@ -14,7 +14,7 @@ anywhere. Names are imported on first use, so importing a camera does not need `
 
 from __future__ import annotations
 
-from beadsight._compat import lazy_names
+from beadsight.lazy import lazy_names
 
 _WHERE = {
     "PlaybackCamera": "beadsight.devices.virtual.camera",

@@ -24,7 +24,7 @@ fractions of the image side, ``trace`` (new ``[t_s, force_n, reference_force_n]`
 points since this client's previous message), ``recording`` and ``record_error`` (why
 the last recording stopped by itself, e.g. a full disk; else null).
 
-The viewer is a :class:`beadsight.live.sensor.LiveListener`: the sensing thread only stores a
+The viewer is a :class:`beadsight.live.listeners.LiveListener`: the sensing thread only stores a
 reference to the newest update and appends one trace point. One thread serves every
 browser (:mod:`beadsight.live.viewer.events`): it builds the state and encodes the
 images at most ``max_fps`` times a second, once for all; a slow browser only misses
