@@ -7,7 +7,9 @@
 * :class:`SimulatedSession` - the reference press pattern, frame by frame;
 * :func:`simulate_dataset` - record a session as a dataset (scale force, commanded XY);
 * :func:`sample_pouch` / :class:`PouchDistribution` - the range of real builds (pouch,
-  light, camera, image), with a held-out split, for base models.
+  light, camera, image), with a held-out split, for base models;
+* :data:`LOOK_SPLITS` / :func:`sample_look` - look families (beads, background, light,
+  camera) as unlike each other as two renderers, two of them held out.
 
 See ``docs/simulator.md``.
 """
@@ -19,6 +21,8 @@ from beadsight._compat import lazy_names
 # The names above, each loaded from its module on first use (so reading SimConfig does
 # not load the simulator, scipy or h5py).
 _NAMES = {
+    "LOOK_SPLITS": "beadsight.sim.looks",
+    "LookSample": "beadsight.sim.looks",
     "PRESET_BEAD_COUNTS": "beadsight.sim.config",
     "PouchDistribution": "beadsight.sim.variety",
     "PouchSample": "beadsight.sim.variety",
@@ -30,6 +34,7 @@ _NAMES = {
     "SimulatedScale": "beadsight.sim.scale",
     "SimulatedSession": "beadsight.sim.session",
     "SimulationError": "beadsight.sim.dataset",
+    "sample_look": "beadsight.sim.looks",
     "sample_pouch": "beadsight.sim.variety",
     "sample_presses": "beadsight.sim.press",
     "sim_config_for": "beadsight.sim.dataset",

@@ -31,6 +31,7 @@ from beadsight.config import REFERENCE_G_TO_N
 from beadsight.data.dataset import DatasetWriter, open_dataset
 from beadsight.errors import BeadSightError
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
+from beadsight.sim.looks import resolve_looks
 from beadsight.sim.session import SimFrame, SimulatedSession
 from beadsight.sim.variety import FACTOR_NAMES, SPLITS
 
@@ -111,6 +112,7 @@ def simulate_dataset(
     overwrite: bool = False,
     progress: bool = True,
     workers: int = 1,
+    looks: str | None = None,
 ) -> Path:
     """Simulate ``presses`` presses and write them as a dataset at ``out``. Returns the path.
 
@@ -123,12 +125,15 @@ def simulate_dataset(
     split of :mod:`beadsight.sim.variety` (``config`` is the base: image size, fps,
     rig). An existing ``out`` is refused unless ``overwrite``. Frames are RGB;
     provenance records the seed, the pouches, the full config and each build's factors.
+    looks: ``"train"``, ``"heldout"`` or a family of :mod:`beadsight.sim.looks`: each
+    pouch draws a look (on top of its build, with ``variety``); provenance records
+    each pouch's family (``simulator.looks.pouch_families``) and drawn values.
     workers > 1: simulate in that many processes, each a shard of whole pouches with
     its own seed (spawned from ``seed``), joined into ``out`` in shard order (see
     :func:`simulate_sharded`); the same seed and workers give the same dataset.
     """
     out = Path(out)
-    _check_arguments(out, presses, pouches, compression, variety, workers, overwrite)
+    _check_arguments(out, presses, pouches, compression, variety, workers, overwrite, looks)
     cfg = sim_config_for(n_beads, image_size, fps, config)
     if workers > 1 and pouches > 1:
         return simulate_sharded(
@@ -141,10 +146,11 @@ def simulate_dataset(
             compression=compression,
             variety=variety,
             progress=progress,
+            looks=looks,
         )
     per_pouch = math.ceil(presses / pouches) if pouches > 1 else None
     session = SimulatedSession(
-        cfg, seed, int(presses), presses_per_pouch=per_pouch, variety=variety
+        cfg, seed, int(presses), presses_per_pouch=per_pouch, variety=variety, looks=looks
     )
     provenance = {
         "source": "sim",
@@ -156,6 +162,7 @@ def simulate_dataset(
             "config": cfg.to_dict(),
             "beadsight_version": __version__,
             **({} if variety is None else {"variety": variety_provenance(session, pouches)}),
+            **({} if looks is None else {"looks": looks_provenance(session, pouches)}),
         },
         "force": "simulated HX711 scale readings (grams), linearly interpolated to frame times",
         "position": "commanded printer XY, mm from the sensor centre",
@@ -171,7 +178,9 @@ def simulate_dataset(
     return out
 
 
-def _check_arguments(out, presses, pouches, compression, variety, workers, overwrite) -> None:
+def _check_arguments(
+    out, presses, pouches, compression, variety, workers, overwrite, looks=None
+) -> None:
     def positive_int(value) -> bool:
         return not isinstance(value, bool) and int(value) == value and value >= 1
 
@@ -187,6 +196,8 @@ def _check_arguments(out, presses, pouches, compression, variety, workers, overw
         raise SimulationError(f"variety must be None or one of {SPLITS}, got {variety!r}")
     if not positive_int(workers):
         raise SimulationError(f"workers must be a positive integer, got {workers!r}")
+    if looks is not None:
+        resolve_looks(looks)  # a ConfigError naming the splits and families
 
 
 def variety_provenance(session: SimulatedSession, pouches: int) -> dict:
@@ -206,6 +217,26 @@ def variety_provenance(session: SimulatedSession, pouches: int) -> dict:
         record["pouch_factors"] = rows
     else:
         record["pouch_factors"] = f"omitted ({pouches} pouches): re-draw them from the seed"
+    return record
+
+
+def looks_provenance(session: SimulatedSession, pouches: int) -> dict:
+    """What a looks dataset records: the split or family asked for, and each pouch's
+    drawn family and values (values omitted past MAX_BUILDS_JSON_BYTES; the session's
+    seed re-draws them: ``SimulatedSession(..., looks=...).pouch_look(i)``)."""
+    drawn = [session.pouch_look(i) for i in range(pouches)]
+    record: dict = {
+        "looks": session.looks,
+        "pouch_families": [d.family for d in drawn],
+    }
+    values = [
+        {k: (round(v, FACTOR_DIGITS) if isinstance(v, float) else v) for k, v in d.values.items()}
+        for d in drawn
+    ]
+    if len(json.dumps(values)) <= MAX_BUILDS_JSON_BYTES:
+        record["pouch_values"] = values
+    else:
+        record["pouch_values"] = f"omitted ({pouches} pouches): re-draw them from the seed"
     return record
 
 
@@ -272,6 +303,7 @@ def simulate_sharded(
     compression: str | None = None,
     variety: str | None = None,
     progress: bool = True,
+    looks: str | None = None,
 ) -> Path:
     """Simulate shards of whole pouches in ``workers`` processes and join them into ``out``.
 
@@ -291,7 +323,7 @@ def simulate_sharded(
     with tempfile.TemporaryDirectory(prefix=f".{out.name}.shards-", dir=out.parent) as tmp:
         paths = [str(Path(tmp) / f"shard{k:03d}.h5") for k in range(len(plan))]
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            shard_args = dict(config=cfg, compression=compression, variety=variety)
+            shard_args = dict(config=cfg, compression=compression, variety=variety, looks=looks)
             jobs = [
                 pool.submit(simulate_dataset, path, n, s, pouches=p, progress=False, **shard_args)
                 for path, (n, p, s) in zip(paths, plan, strict=True)
@@ -300,6 +332,10 @@ def simulate_sharded(
                 job.result()
         with open_dataset(paths[0]) as first:
             provenance = {k: v for k, v in first.provenance.items() if k != "created_unix"}
+        shard_looks = []
+        for path in paths if looks is not None else ():
+            with open_dataset(path) as shard:
+                shard_looks.append(shard.provenance["simulator"]["looks"])
         sim = provenance["simulator"]
         sim.update(
             seed=int(seed),
@@ -311,6 +347,16 @@ def simulate_sharded(
         )
         if variety is not None:
             sim["variety"]["pouch_factors"] = "per shard: re-draw them from each shard's seed"
+        if looks is not None:  # every pouch's family, in the joined dataset's order
+            sim["looks"]["pouch_families"] = [f for s in shard_looks for f in s["pouch_families"]]
+            values = (
+                [v for s in shard_looks for v in s["pouch_values"]]
+                if all(isinstance(s["pouch_values"], list) for s in shard_looks)
+                else "per shard: re-draw them from each shard's seed"
+            )
+            if len(json.dumps(values)) > MAX_BUILDS_JSON_BYTES:
+                values = "per shard: re-draw them from each shard's seed"
+            sim["looks"]["pouch_values"] = values
         with DatasetWriter(
             out, cfg.geometry, fps=cfg.fps, provenance=provenance, compression=compression
         ) as writer:
