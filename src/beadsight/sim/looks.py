@@ -84,10 +84,11 @@ Spec = Uniform | Integer | Choice
 
 # --- bead tints (linear RGB multipliers, max channel <= 1) ------------------------------
 def _clear_pink(u: np.ndarray) -> Tints:
-    """Clear beads with a faint pink tint (as in photos of the real sensor): 3 shades."""
-    pink = 0.06 + 0.16 * u[0]  # how pink the bag is
+    """Clear beads with a pink to magenta tint (as in photos of the real sensor): 3 shades."""
+    pink = 0.06 + 0.22 * u[0]  # how pink the bag is
+    blue = 0.2 + 0.4 * u[4]  # how much of the pink's loss blue shares (low: magenta)
     return tuple(
-        (1.0, round(1.0 - pink * (0.8 + 0.4 * u[1 + k]), 4), round(1.0 - 0.55 * pink, 4))
+        (1.0, round(1.0 - pink * (0.8 + 0.4 * u[1 + k]), 4), round(1.0 - blue * pink, 4))
         for k in range(3)
     )
 
@@ -209,12 +210,16 @@ FAMILIES: dict[str, LookFamily] = {
                 ("rim_width", Uniform(0.16, 0.26)),
                 ("caustic_gain", Uniform(0.3, 0.8)),
                 ("specular_peak", Uniform(200.0, 320.0)),
-                ("background_level", Uniform(30.0, 70.0)),
+                ("background_level", Uniform(30.0, 100.0)),
                 ("background_warmth", Uniform(0.0, 1.0)),
                 ("mottle_amplitude", Uniform(3.0, 10.0)),
                 ("glare_level", Uniform(6.0, 20.0)),
-                ("bead_diameter_mm", Uniform(3.6, 4.4)),
-                *_CAMERA_TRAIN,
+                ("bead_diameter_mm", Uniform(3.6, 4.6)),
+                ("noise_std", Uniform(0.8, 4.0)),
+                ("defocus_sigma_mm", Uniform(0.0, 0.3)),  # photos of the real sensor are soft
+                ("lens_focal_error", Uniform(-0.03, 0.03)),
+                ("lens_distortion_k", Uniform(-0.04, 0.04)),
+                ("crop_scale_error", Uniform(-0.02, 0.02)),
             ),
             _clear_pink,
         ),
