@@ -6,9 +6,13 @@ reference preprocessing (:meth:`beadsight.preprocess.Preprocessor.reference`,
 bilinear) to a 256 px sensor-space image. On it:
 
 * ``mean_rgb`` / ``std_rgb``: per-channel mean and standard deviation, 0..255;
-* ``bead_px``: the dominant blob diameter, px at 256: the scale ``sigma`` that
-  maximises the mean squared scale-normalised Laplacian of Gaussian of the grey
-  image, as ``2 sqrt(2) sigma`` (a disc of that diameter maximises it);
+* ``bead_px``: the bead spacing, px at 256: the first peak of the radial profile of
+  the grey image's autocorrelation (normalised by the mask's own, so masked bars do
+  not count), between ``SPACING_PX``; in a packed layer, about a bead's diameter
+  (4 mm beads: ~25 px). None when there is no peak in that range;
+* ``blob_px``: the dominant blob diameter: the scale ``sigma`` that maximises the
+  mean squared scale-normalised Laplacian of Gaussian, as ``2 sqrt(2) sigma``
+  (highlights and gaps count as blobs too, so it is below the bead size);
 * ``rim_contrast``: thin dark outlines (refraction rims, dark gaps between beads):
   the mean black top-hat of the grey image (closing minus image, an ellipse of
   about half the bead size) over its median; 0: no dark lines thinner than a bead.
@@ -46,6 +50,7 @@ from beadsight.sim.looks import FAMILY_NAMES, LOOK_SPLITS, sample_look
 
 SIZE = 256  # sensor-space side the statistics are measured at
 SIGMAS = np.geomspace(2.0, 16.0, 22)  # LoG scales searched, px at 256
+SPACING_PX = (8, 48)  # bead spacings searched, px at 256 (1.3 to 7.7 mm)
 BAR_MIN_FRACTION = 0.45  # a row/column mostly bright and colourless is a bar of the jig
 BAR_VALUE, BAR_CHROMA = 150, 45  # HSV value above / saturation below: a bar pixel
 BAR_DILATE_PX = 4
@@ -89,16 +94,37 @@ def image_stats(rgb: np.ndarray, mask: np.ndarray | None = None) -> dict:
     return {
         "mean_rgb": px.mean(0).round(1).tolist(),
         "std_rgb": px.std(0).round(1).tolist(),
-        "bead_px": round(bead_px, 1),
+        "bead_px": None if math.isnan(spacing := bead_spacing_px(grey, mask)) else spacing,
+        "blob_px": round(bead_px, 1),
         "rim_contrast": round(rim, 3),
     }
+
+
+def bead_spacing_px(grey: np.ndarray, mask: np.ndarray) -> float:
+    """First peak of the masked autocorrelation's radial profile in SPACING_PX (or NaN)."""
+    m = mask.astype(np.float64)
+    g = (grey - grey[mask].mean()) * m
+    n = 2 * max(grey.shape)  # zero padding: no wrap-around
+    f, fm = np.fft.rfft2(g, (n, n)), np.fft.rfft2(m, (n, n))
+    ac = np.fft.irfft2(f * np.conj(f), (n, n))
+    count = np.fft.irfft2(fm * np.conj(fm), (n, n))
+    ac = np.fft.fftshift(ac / np.maximum(count, 1.0))
+    yy, xx = np.mgrid[-n // 2 : n // 2, -n // 2 : n // 2]
+    r = np.rint(np.hypot(yy, xx)).astype(np.int64).ravel()
+    lo, hi = SPACING_PX
+    profile = np.bincount(r, ac.ravel())[: hi + 2] / np.bincount(r)[: hi + 2]
+    for k in range(lo, hi + 1):
+        if profile[k] >= profile[k - 1] and profile[k] > profile[k + 1]:
+            return float(k)
+    return math.nan
 
 
 def mean_stats(rows: list[dict]) -> dict:
     out = {}
     for key in rows[0]:
-        values = np.array([r[key] for r in rows], np.float64)
-        out[key] = np.round(values.mean(0), 3).tolist()
+        values = np.array([np.nan if r[key] is None else r[key] for r in rows], np.float64)
+        mean = np.nanmean(values, 0) if not np.isnan(values).all() else values.mean(0)
+        out[key] = None if np.isnan(mean).all() else np.round(mean, 3).tolist()
     return out
 
 
@@ -164,8 +190,10 @@ def render_speed(pouches: int, frames: int = 200, repeats: int = 5) -> dict:
 
 def label(tile: np.ndarray, text: str) -> np.ndarray:
     tile = tile.copy()
-    cv2.putText(tile, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(tile, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1)
+    cv2.rectangle(tile, (0, 0), (8 + 7 * len(text), 16), (0, 0, 0), -1)
+    cv2.putText(
+        tile, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (255, 255, 255), 1, cv2.LINE_AA
+    )
     return tile
 
 
@@ -182,9 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     if not photos:
         raise SystemExit(f"{args.photos}: no photos match {args.photos_glob!r}")
     pre = Preprocessor.reference(output_size=SIZE, interpolation="linear")
-    rows: dict[str, dict] = {
-        "real": mean_stats([image_stats(im, grid_mask(im)) for _, im in photos])
-    }
+    per_photo = {name: image_stats(im, grid_mask(im)) for name, im in photos}
+    rows: dict[str, dict] = {"real": mean_stats(list(per_photo.values()))}
     pictures: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for family in (None, *FAMILY_NAMES):
         name = family or "reference"
@@ -193,13 +220,15 @@ def main(argv: list[str] | None = None) -> int:
         pictures[name] = frames[0]
 
     split_of = {f: s for s, fams in LOOK_SPLITS.items() for f in fams}
-    print(f"{'look':<12} {'split':<8} {'mean RGB':<20} {'std RGB':<20} {'bead px':>7} {'rim':>6}")
+    print(f"{'look':<12} {'split':<8} {'mean RGB':<16} {'std RGB':<12} {'bead px':>7} "
+          f"{'blob px':>7} {'rim':>6}")  # fmt: skip
     for name, r in rows.items():
         split = split_of.get(name, "photo" if name == "real" else "default")
         mean = "/".join(f"{v:.0f}" for v in r["mean_rgb"])
         std = "/".join(f"{v:.0f}" for v in r["std_rgb"])
-        print(f"{name:<12} {split:<8} {mean:<20} {std:<20} {r['bead_px']:>7.1f} "
-              f"{r['rim_contrast']:>6.3f}")  # fmt: skip
+        bead = "-" if r["bead_px"] is None else f"{r['bead_px']:.1f}"
+        print(f"{name:<12} {split:<8} {mean:<16} {std:<12} {bead:>7} "
+              f"{r['blob_px']:>7.1f} {r['rim_contrast']:>6.3f}")  # fmt: skip
 
     if args.image is not None:
         grid = []
@@ -222,6 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         "photos": [n for n, _ in photos],
         "splits": {k: list(v) for k, v in LOOK_SPLITS.items()},
         "stats": rows,
+        "photo_stats": per_photo,
     }
     if args.speed:
         from beadsight.inference.machine import cpu_name

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -164,6 +165,8 @@ def test_dataset_and_cli_record_each_pouchs_family(tmp_path):
     assert set(looks["pouch_families"]) <= set(LOOK_SPLITS["train"])
 
 
-def test_family_table_lists_every_family():
+def test_family_table_lists_every_family_and_is_the_documented_one():
     table = family_table()
     assert all(f"`{name}`" in table for name in FAMILY_NAMES)
+    doc = (Path(__file__).parents[2] / "docs" / "simulator.md").read_text(encoding="utf-8")
+    assert table in doc  # the documented ranges are the code's
