@@ -73,6 +73,16 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
         "this split of the range of real builds (docs/simulator.md); with --pouches N, "
         "a base-model training set (train) or builds no base model saw (heldout)",
     )
+    from beadsight.sim.looks import FAMILY_NAMES, LOOK_SPLITS
+
+    p.add_argument(
+        "--looks",
+        choices=(*LOOK_SPLITS, *FAMILY_NAMES),
+        default=None,
+        help="give every pouch a look (beads, background, light, camera) drawn from a "
+        "family of this split, or this one family (docs/simulator.md); 'heldout' families "
+        "are the foreign-look benchmark: never train on them (default: the reference look)",
+    )
     p.add_argument(
         "--profile",
         choices=PRESS_PROFILES,
@@ -115,6 +125,7 @@ def _simulate(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         progress=not args.no_progress,
         workers=args.workers,
+        looks=args.looks,
         **given(seed=args.seed, pouches=args.pouches),
     )
     print(f"wrote {out}")

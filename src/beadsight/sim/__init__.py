@@ -8,7 +8,9 @@
   slow ramps and depth changes while held (:class:`Press`, ``PROFILES``), frame by frame;
 * :func:`simulate_dataset` - record a session as a dataset (scale force, commanded XY);
 * :func:`sample_pouch` / :class:`PouchDistribution` - the range of real builds (pouch,
-  light, camera, image), with a held-out split, for base models.
+  light, camera, image), with a held-out split, for base models;
+* :data:`LOOK_SPLITS` / :func:`sample_look` - look families (beads, background, light,
+  camera) as unlike each other as two renderers, two of them held out.
 
 See ``docs/simulator.md``.
 """
@@ -20,6 +22,8 @@ from beadsight.lazy import lazy_names
 # The names above, each loaded from its module on first use (so reading SimConfig does
 # not load the simulator, scipy or h5py).
 _NAMES = {
+    "LOOK_SPLITS": "beadsight.sim.looks",
+    "LookSample": "beadsight.sim.looks",
     "PRESET_BEAD_COUNTS": "beadsight.sim.config",
     "PROFILES": "beadsight.sim.press",
     "HoldMove": "beadsight.sim.press",
@@ -33,6 +37,7 @@ _NAMES = {
     "SimulatedScale": "beadsight.sim.scale",
     "SimulatedSession": "beadsight.sim.session",
     "SimulationError": "beadsight.sim.dataset",
+    "sample_look": "beadsight.sim.looks",
     "sample_pouch": "beadsight.sim.variety",
     "sample_presses": "beadsight.sim.press",
     "sim_config_for": "beadsight.sim.dataset",

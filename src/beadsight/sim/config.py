@@ -31,6 +31,8 @@ PRESET_BEAD_COUNTS = (75, 100, 125)  # pouch variants of the published sensor
 # pattern, or a mix with long holds, slow ramps and depth changes while held.
 PRESS_PROFILES = ("reference", "mixed")
 WARM_WHITE_RGB = (1.0, 0.97, 0.92)  # colour of the reference build's LEDs (linear RGB)
+COVER_TINT_RGB = (0.92, 0.97, 1.0)  # water over the black vinyl cover: slightly cool
+BACKGROUND_PATTERNS = ("mottle", "dots", "grid", "stripes", "speckle")  # background prints
 
 
 @dataclass(frozen=True)
@@ -135,6 +137,28 @@ class SimConfig(_Serializable):
     motion_blur_fraction: float = 0.0  # exposure reaches this far into the previous frame period
     defocus_sigma_mm: float = 0.0  # Gaussian blur of an out-of-focus lens, mm on the pouch
 
+    # --- look: how the beads, the background and the light appear (sim/looks.py) --------
+    # Defaults are the reference look (coloured beads on the black cover); radiance
+    # units are 0..255 under full illumination.
+    bead_body_level: float = 205.0  # body brightness of a bead at its centre
+    bead_opacity: float = 0.9  # beads are translucent: the background shows through a little
+    bead_clarity: float = 0.0  # clear beads: opacity falls by this fraction toward the centre
+    bead_shading: float = 0.45  # body brightness falls by this fraction from centre to rim
+    rim_darken: float = 0.62  # refraction makes a dark ring at the bead's outline
+    rim_width: float = 0.14  # width of that ring, fraction of the radius
+    caustic_gain: float = 0.35  # light focused by the bead, opposite its highlights
+    specular_peak: float = 300.0  # peak of each LED's specular highlight (saturates)
+    background_tint_rgb: tuple[float, float, float] = COVER_TINT_RGB  # of background_level
+    background_pattern: str = "mottle"  # mottle, dots, grid, stripes or speckle (a print)
+    pattern_contrast: float = 0.0  # the print darkens the background by this fraction
+    pattern_period_mm: float = 2.5  # spacing of the print's dots, lines or stripes
+    mottle_amplitude: float = 5.0  # low-frequency texture of the background, radiance units
+    seam_level: float = 85.0  # the pouch's welded seam at the border of the field of view
+    n_leds: int = 4  # LEDs around the camera (4: the reference's square; else a ring)
+    glare_level: float = 9.0  # reflections of the LEDs on the acrylic, radiance units
+    glare_sigma_mm: float = 3.0  # size of one LED's glare spot
+    camera_saturation: float = 1.0  # colour saturation of the camera (0: monochrome sensor)
+
     def __post_init__(self) -> None:
         tints = tuple(tuple(float(c) for c in t) for t in self.bead_tints_rgb)
         object.__setattr__(self, "bead_tints_rgb", tints)
@@ -147,9 +171,10 @@ class SimConfig(_Serializable):
             "camera_offset_mm",
             "camera_tilt_deg",
             "crop_offset_mm",
+            "background_tint_rgb",
         ):
             object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
-        for name in ("n_beads", "n_bubbles", "image_size_px", "raw_render_px"):
+        for name in ("n_beads", "n_bubbles", "image_size_px", "raw_render_px", "n_leds"):
             value = getattr(self, name)
             if int(value) != value:
                 raise ConfigError(f"SimConfig.{name} must be an integer, got {value!r}")
@@ -284,6 +309,35 @@ class SimConfig(_Serializable):
         need(abs(self.crop_scale_error) <= 0.3, "crop_scale_error", "within +-0.3")
         need(0 <= self.motion_blur_fraction < 1, "motion_blur_fraction", "in [0, 1)")
         need(0 <= self.defocus_sigma_mm <= 2, "defocus_sigma_mm", "in [0, 2]")
+        self._check_look_ranges(need)
+
+    def _check_look_ranges(self, need) -> None:
+        """Ranges of the look fields (beads, background, LEDs, glare; sim/looks.py)."""
+        need(0 < self.bead_body_level <= 255, "bead_body_level", "in (0, 255]")
+        for name in ("bead_opacity", "bead_clarity", "bead_shading", "rim_darken"):
+            need(0 <= getattr(self, name) <= 1, name, "in [0, 1]")
+        need(0 < self.rim_width <= 0.5, "rim_width", "in (0, 0.5]")
+        need(0 <= self.caustic_gain <= 2, "caustic_gain", "in [0, 2]")
+        need(0 <= self.specular_peak <= 1000, "specular_peak", "in [0, 1000]")
+        v = self.background_tint_rgb
+        need(
+            len(v) == 3 and all(0 <= c <= 2 for c in v),
+            "background_tint_rgb",
+            "(r, g, b) in [0, 2]",
+        )
+        need(
+            self.background_pattern in BACKGROUND_PATTERNS,
+            "background_pattern",
+            f"one of {BACKGROUND_PATTERNS}",
+        )
+        need(0 <= self.pattern_contrast <= 1, "pattern_contrast", "in [0, 1]")
+        need(0.3 <= self.pattern_period_mm <= 20, "pattern_period_mm", "in [0.3, 20]")
+        need(0 <= self.mottle_amplitude <= 60, "mottle_amplitude", "in [0, 60]")
+        need(0 <= self.seam_level <= 255, "seam_level", "in [0, 255]")
+        need(1 <= self.n_leds <= 12, "n_leds", "in [1, 12]")
+        need(0 <= self.glare_level <= 255, "glare_level", "in [0, 255]")
+        need(0 < self.glare_sigma_mm <= 20, "glare_sigma_mm", "in (0, 20]")
+        need(0 <= self.camera_saturation <= 3, "camera_saturation", "in [0, 3]")
 
     # --- derived ---------------------------------------------------------------------
     @property

@@ -32,6 +32,7 @@ from beadsight.data.dataset import open_dataset
 from beadsight.data.writer import DatasetWriter
 from beadsight.errors import BeadSightError
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
+from beadsight.sim.looks import resolve_looks
 from beadsight.sim.press import check_profile
 from beadsight.sim.session import SimFrame, SimulatedSession
 from beadsight.sim.variety import FACTOR_NAMES, SPLITS
@@ -114,6 +115,7 @@ def simulate_dataset(
     overwrite: bool = False,
     progress: bool = True,
     workers: int = 1,
+    looks: str | None = None,
 ) -> Path:
     """Simulate ``presses`` presses and write them as a dataset at ``out``. Returns the path.
 
@@ -128,12 +130,17 @@ def simulate_dataset(
     (``"mixed"``: long holds, slow ramps and depth changes while held, for
     rest-referenced training; see :func:`~beadsight.sim.press.draw_profile`). An existing ``out`` is refused unless ``overwrite``. Frames are RGB;
     provenance records the seed, the pouches, the full config and each build's factors.
+    looks: ``"train"``, ``"heldout"`` or a family of :mod:`beadsight.sim.looks`: each
+    pouch draws a look (on top of its build, with ``variety``); provenance records
+    each pouch's family (``simulator.looks.pouch_families``) and drawn values.
     workers > 1: simulate in that many processes, each a shard of whole pouches with
     its own seed (spawned from ``seed``), joined into ``out`` in shard order (see
     :func:`simulate_sharded`); the same seed and workers give the same dataset.
     """
     out = Path(out)
-    _check_arguments(out, presses, pouches, compression, variety, workers, overwrite, profile)
+    _check_arguments(
+        out, presses, pouches, compression, variety, workers, overwrite, profile, looks
+    )
     cfg = sim_config_for(n_beads, image_size, fps, config)
     if workers > 1 and pouches > 1:
         return simulate_sharded(
@@ -147,10 +154,17 @@ def simulate_dataset(
             variety=variety,
             profile=profile,
             progress=progress,
+            looks=looks,
         )
     per_pouch = math.ceil(presses / pouches) if pouches > 1 else None
     session = SimulatedSession(
-        cfg, seed, int(presses), presses_per_pouch=per_pouch, variety=variety, profile=profile
+        cfg,
+        seed,
+        int(presses),
+        presses_per_pouch=per_pouch,
+        variety=variety,
+        profile=profile,
+        looks=looks,
     )
     provenance = {
         "source": "sim",
@@ -163,6 +177,7 @@ def simulate_dataset(
             "config": cfg.to_dict(),
             "beadsight_version": __version__,
             **({} if variety is None else {"variety": variety_provenance(session, pouches)}),
+            **({} if looks is None else {"looks": looks_provenance(session, pouches)}),
         },
         "force": "simulated HX711 scale readings (grams), linearly interpolated to frame times",
         "position": "commanded printer XY, mm from the sensor centre",
@@ -179,7 +194,7 @@ def simulate_dataset(
 
 
 def _check_arguments(
-    out, presses, pouches, compression, variety, workers, overwrite, profile
+    out, presses, pouches, compression, variety, workers, overwrite, profile, looks=None
 ) -> None:
     def positive_int(value) -> bool:
         return not isinstance(value, bool) and int(value) == value and value >= 1
@@ -197,6 +212,8 @@ def _check_arguments(
     check_profile(profile)  # a ConfigError naming the profiles
     if not positive_int(workers):
         raise SimulationError(f"workers must be a positive integer, got {workers!r}")
+    if looks is not None:
+        resolve_looks(looks)  # a ConfigError naming the splits and families
 
 
 def variety_provenance(session: SimulatedSession, pouches: int) -> dict:
@@ -216,6 +233,26 @@ def variety_provenance(session: SimulatedSession, pouches: int) -> dict:
         record["pouch_factors"] = rows
     else:
         record["pouch_factors"] = f"omitted ({pouches} pouches): re-draw them from the seed"
+    return record
+
+
+def looks_provenance(session: SimulatedSession, pouches: int) -> dict:
+    """What a looks dataset records: the split or family asked for, and each pouch's
+    drawn family and values (values omitted past MAX_BUILDS_JSON_BYTES; the session's
+    seed re-draws them: ``SimulatedSession(..., looks=...).pouch_look(i)``)."""
+    drawn = [session.pouch_look(i) for i in range(pouches)]
+    record: dict = {
+        "looks": session.looks,
+        "pouch_families": [d.family for d in drawn],
+    }
+    values = [
+        {k: (round(v, FACTOR_DIGITS) if isinstance(v, float) else v) for k, v in d.values.items()}
+        for d in drawn
+    ]
+    if len(json.dumps(values)) <= MAX_BUILDS_JSON_BYTES:
+        record["pouch_values"] = values
+    else:
+        record["pouch_values"] = f"omitted ({pouches} pouches): re-draw them from the seed"
     return record
 
 
@@ -283,6 +320,7 @@ def simulate_sharded(
     variety: str | None = None,
     profile: str = "reference",
     progress: bool = True,
+    looks: str | None = None,
 ) -> Path:
     """Simulate shards of whole pouches in ``workers`` processes and join them into ``out``.
 
@@ -302,7 +340,9 @@ def simulate_sharded(
     with tempfile.TemporaryDirectory(prefix=f".{out.name}.shards-", dir=out.parent) as tmp:
         paths = [str(Path(tmp) / f"shard{k:03d}.h5") for k in range(len(plan))]
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            shard_args = dict(config=cfg, compression=compression, variety=variety, profile=profile)
+            shard_args = dict(
+                config=cfg, compression=compression, variety=variety, profile=profile, looks=looks
+            )
             jobs = [
                 pool.submit(simulate_dataset, path, n, s, pouches=p, progress=False, **shard_args)
                 for path, (n, p, s) in zip(paths, plan, strict=True)
@@ -311,6 +351,10 @@ def simulate_sharded(
                 job.result()
         with open_dataset(paths[0]) as first:
             provenance = {k: v for k, v in first.provenance.items() if k != "created_unix"}
+        shard_looks = []
+        for path in paths if looks is not None else ():
+            with open_dataset(path) as shard:
+                shard_looks.append(shard.provenance["simulator"]["looks"])
         sim = provenance["simulator"]
         sim.update(
             seed=int(seed),
@@ -322,6 +366,16 @@ def simulate_sharded(
         )
         if variety is not None:
             sim["variety"]["pouch_factors"] = "per shard: re-draw them from each shard's seed"
+        if looks is not None:  # every pouch's family, in the joined dataset's order
+            sim["looks"]["pouch_families"] = [f for s in shard_looks for f in s["pouch_families"]]
+            values = (
+                [v for s in shard_looks for v in s["pouch_values"]]
+                if all(isinstance(s["pouch_values"], list) for s in shard_looks)
+                else "per shard: re-draw them from each shard's seed"
+            )
+            if len(json.dumps(values)) > MAX_BUILDS_JSON_BYTES:
+                values = "per shard: re-draw them from each shard's seed"
+            sim["looks"]["pouch_values"] = values
         with DatasetWriter(
             out, cfg.geometry, fps=cfg.fps, provenance=provenance, compression=compression
         ) as writer:

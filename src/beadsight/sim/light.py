@@ -13,9 +13,6 @@ import numpy as np
 
 from beadsight.sim.config import SimConfig
 
-GLARE_LEVEL = 9.0  # reflections of the LEDs on the acrylic, radiance units at full light
-GLARE_SIGMA_MM = 3.0  # size of one LED's glare spot
-
 # Colour temperature -> linear RGB of a white LED: the blackbody's colour over the
 # visible band, sampled at three wavelengths standing for the camera's R, G, B
 # filters, normalised so the brightest channel is 1.
@@ -50,10 +47,17 @@ def pixel_mm(config: SimConfig, size: int, pad: int = 0) -> tuple[np.ndarray, np
 
 
 def led_positions_mm(config: SimConfig) -> list[tuple[float, float]]:
-    """(x, y) of the four LEDs, mm: the corners of a square of half-side ``led_offset_mm``,
+    """(x, y) of the LEDs, mm: four at the corners of a square of half-side
+    ``led_offset_mm`` (the reference), any other ``n_leds`` evenly on the circle through
+    those corners, the first at the (+, +) corner (one LED lights from one side); all
     turned by ``led_rotation_deg``."""
     a = config.led_offset_mm
-    corners = [(sx * a, sy * a) for sx in (-1, 1) for sy in (-1, 1)]
+    if config.n_leds == 4:
+        corners = [(sx * a, sy * a) for sx in (-1, 1) for sy in (-1, 1)]
+    else:
+        n, rho = config.n_leds, a * math.sqrt(2.0)
+        angles = [math.pi / 4 + 2 * math.pi * k / n for k in range(n)]
+        corners = [(rho * math.cos(t), rho * math.sin(t)) for t in angles]
     if config.led_rotation_deg == 0:
         return corners
     t = math.radians(config.led_rotation_deg)
@@ -123,6 +127,6 @@ def glare(config: SimConfig, size: int) -> np.ndarray:
     x, y = pixel_mm(config, size)
     spots = np.zeros((size, size), np.float64)
     for lx, ly in led_positions_mm(config):
-        spots += np.exp(-((x - lx) ** 2 + (y - ly) ** 2) / (2 * GLARE_SIGMA_MM**2))
-    out = GLARE_LEVEL * spots[..., None] * camera_gain_rgb(config)[None, None, :]
+        spots += np.exp(-((x - lx) ** 2 + (y - ly) ** 2) / (2 * config.glare_sigma_mm**2))
+    out = config.glare_level * spots[..., None] * camera_gain_rgb(config)[None, None, :]
     return np.ascontiguousarray(np.clip(np.rint(out), 0, 255).astype(np.uint8))

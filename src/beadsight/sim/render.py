@@ -49,14 +49,9 @@ SPRITE_CACHE_BYTES = 96 * 2**20  # the oldest quarter of the sprites is dropped 
 _LOG_STEP = math.log1p(RADIUS_STEP)
 
 # --- appearance (radiance units: 0..255 under full illumination) --------------------
-BEAD_BASE = 205.0  # body brightness of a clear bead at its centre
-BEAD_OPACITY = 0.9  # beads are translucent: the background shows through a little
-BEAD_SHADING = 0.45  # body brightness falls by this fraction from centre to rim
-RIM_DARKEN = 0.62  # refraction makes a dark ring at the bead's outline
-RIM_WIDTH = 0.14  # of the radius
-CAUSTIC_GAIN = 0.35  # light focused by the bead, opposite its highlights
+# A look's levels (bead body, opacity, clarity, shading, rim, caustic, specular peak,
+# background, seam) are SimConfig fields (sim/looks.py draws them); these shape it.
 CAUSTIC_SIGMA = 0.32  # of the radius
-SPECULAR_PEAK = 300.0  # peak of each LED's specular highlight (saturates)
 SPECULAR_SIGMA = 0.075  # of the radius (at least SPECULAR_MIN_PX)
 SPECULAR_MIN_PX = 0.55
 SPECULAR_SPREAD = 0.21  # the four highlights sit this far (of the radius) from their centre
@@ -70,10 +65,9 @@ BUBBLE_RING = 22.0  # its thick dark ring (total internal reflection)
 BUBBLE_RING_WIDTH = 0.38  # of the radius
 BUBBLE_CENTRE_ALPHA = 0.35
 BUBBLE_RING_ALPHA = 0.92
-MOTTLE_AMPLITUDE = 5.0  # low-frequency texture of the black cover, radiance units
 MOTTLE_SCALE_MM = 3.0
-SEAM_LEVEL = 85.0  # the pouch's welded seam at the border of the field of view
-_COVER_TINT = np.array([0.92, 0.97, 1.0], np.float32)  # water over black vinyl: slightly cool
+CLARITY_CORE = 0.8  # a clear bead's transparent core: opacity recovers over the outer 20 %
+SPECKLE_SCALE_MM = 0.5  # grain of the "speckle" background print
 NOISE_TILES = 2  # pre-generated noise fields, sampled at random offsets
 
 
@@ -107,12 +101,13 @@ class SensorRenderer:
         self._background = self._make_background(look)
         # each object's quantisation threshold, part of the pouch's static look
         self._dither = look.random(config.n_beads + config.n_bubbles)
-        self._exposure = Exposure(config, self.size, SEAM_LEVEL * _COVER_TINT)
+        self._exposure = Exposure(config, self.size, config.seam_level * self._cover_tint())
         self._scratch = np.empty((self.size, self.size, 3), np.float32)
         self._noise_pad = max(8, self.size // 4)
         self._noise = noise_tiles(
             rng, config.noise_std if noise else 0.0, (self.size + self._noise_pad,) * 2
         )
+        self._saturation = saturation_matrix(config.camera_saturation)
         tints = np.asarray(config.bead_tints_rgb, np.float32)
         self._tints = tints
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -128,6 +123,9 @@ class SensorRenderer:
         """x_mm (1, S) of column centres, y_mm (S, 1) of row centres (printer frame)."""
         return pixel_mm(self.config, self.size)
 
+    def _cover_tint(self) -> np.ndarray:
+        return np.asarray(self.config.background_tint_rgb, np.float32)
+
     def _make_background(self, rng: np.random.Generator) -> np.ndarray:
         cfg = self.config
         s = self.size
@@ -137,11 +135,14 @@ class SensorRenderer:
         coarse = max(4, int(cfg.sensor_size_mm / MOTTLE_SCALE_MM))
         field = rng.standard_normal((coarse, coarse)).astype(np.float32)
         field = cv2.resize(field, (s, s), interpolation=cv2.INTER_CUBIC)
-        level = cfg.background_level + MOTTLE_AMPLITUDE * field
+        level = cfg.background_level + cfg.mottle_amplitude * field
+        if cfg.background_pattern != "mottle" and cfg.pattern_contrast > 0:
+            ink = background_print(cfg, x, y, rng, s)
+            level = level * (1.0 - cfg.pattern_contrast * ink)
         outside = np.maximum(np.abs(x), np.abs(y)) > cfg.pouch_half_mm
-        level = np.where(outside, SEAM_LEVEL + 2 * MOTTLE_AMPLITUDE * field, level)
+        level = np.where(outside, cfg.seam_level + 2 * cfg.mottle_amplitude * field, level)
         bg = np.repeat(level[..., None], 3, axis=2).astype(np.float32)
-        bg *= _COVER_TINT
+        bg *= self._cover_tint()
         return np.ascontiguousarray(np.clip(bg, 0, 255))
 
     # --- sprites ------------------------------------------------------------------------
@@ -223,9 +224,11 @@ class SensorRenderer:
         # Position of the bead in the image, -0.5..0.5, for the highlight arrangement.
         q = np.array([(zr + 0.5) / ZONES - 0.5, (zc + 0.5) / ZONES - 0.5])
         if tint == 0:
-            alpha, premult = _bubble(dx, dy, r, flat, q, self._led_q())
+            alpha, premult = _bubble(dx, dy, r, flat, q, self._led_q(), self.config)
         else:
-            alpha, premult = _bead(dx, dy, r, flat, q, self._led_q(), self._tints[tint - 1])
+            alpha, premult = _bead(
+                dx, dy, r, flat, q, self._led_q(), self._tints[tint - 1], self.config
+            )
         # Three-channel (not broadcast) so the blit is two plain cv2 calls.
         inv_alpha = np.repeat((1.0 - alpha)[..., None], 3, axis=2).astype(np.float32)
         return inv_alpha, np.ascontiguousarray(premult.astype(np.float32))
@@ -257,6 +260,8 @@ class SensorRenderer:
         if self.config.flicker > 0:
             gain += self.config.flicker * float(self.rng.standard_normal())
         frame = self._exposure(out, gain)
+        if self._saturation is not None:
+            frame = cv2.transform(frame, self._saturation)
         if self._noise:
             plus, minus = self._noise[int(self.rng.integers(len(self._noise)))]
             oy, ox = (int(v) for v in self.rng.integers(0, self._noise_pad, 2))
@@ -315,34 +320,47 @@ def _highlights(
     return spots
 
 
-def _bead(dx, dy, r, flat, q, leds, tint) -> tuple[np.ndarray, np.ndarray]:
-    """A translucent bead: alpha (h, w) and premultiplied colour (h, w, 3), radiance units."""
+def _bead(dx, dy, r, flat, q, leds, tint, look: SimConfig) -> tuple[np.ndarray, np.ndarray]:
+    """A translucent bead: alpha (h, w) and premultiplied colour (h, w, 3), radiance units.
+
+    look: the config whose look fields (body level, opacity, clarity, shading, rim,
+    caustic, specular peak) shape the bead.
+    """
+    base = look.bead_body_level
+    shading = look.bead_shading
     dist = np.sqrt(dx * dx + dy * dy)
     d = dist / r
     edge = np.clip(r - dist + 0.5, 0.0, 1.0)  # anti-aliased outline
     inside = np.clip(1.0 - d * d, 0.0, 1.0)
-    body = BEAD_BASE * (1.0 - BEAD_SHADING + BEAD_SHADING * np.sqrt(inside))
-    body *= 1.0 - RIM_DARKEN * np.exp(-(((1.0 - d) / RIM_WIDTH) ** 2))
+    body = base * (1.0 - shading + shading * np.sqrt(inside))
+    body *= 1.0 - look.rim_darken * np.exp(-(((1.0 - d) / look.rim_width) ** 2))
     centre = HIGHLIGHT_SHIFT * (q / 0.5) * r * 0.8  # caustic opposite the highlights
-    body += CAUSTIC_GAIN * BEAD_BASE * _gauss(dx, dy, centre[1], centre[0], CAUSTIC_SIGMA * r)
+    body += look.caustic_gain * base * _gauss(dx, dy, centre[1], centre[0], CAUSTIC_SIGMA * r)
     if flat > 0:
         rc = CONTACT_RADIUS * r * math.sqrt(flat)
         patch = np.clip(rc - dist + 0.5, 0.0, 1.0)
-        flat_tone = BEAD_BASE * CONTACT_TONE
+        flat_tone = base * CONTACT_TONE
         body = body * (1 - patch * flat) + flat_tone * patch * flat
         ring = np.exp(-(((dist - rc) / max(0.08 * r, 0.5)) ** 2))
         body += CONTACT_RING * flat * ring
     sigma = max(SPECULAR_SIGMA * r * (1 + 1.5 * flat), SPECULAR_MIN_PX)
     spec = (
-        SPECULAR_PEAK * (1 - CONTACT_SPECULAR_LOSS * flat) * _highlights(dx, dy, r, q, leds, sigma)
+        look.specular_peak
+        * (1 - CONTACT_SPECULAR_LOSS * flat)
+        * _highlights(dx, dy, r, q, leds, sigma)
     )
-    alpha = edge * BEAD_OPACITY
+    alpha = edge * look.bead_opacity
+    if look.bead_clarity > 0:
+        # A clear bead: the background shows through its core, its rim stays opaque
+        # (the dark refraction ring); a flattened face against the window stays clear.
+        core = np.clip((CLARITY_CORE - d) / CLARITY_CORE, 0.0, 1.0)
+        alpha = alpha * (1.0 - look.bead_clarity * np.sqrt(core))
     # Premultiplied: the body is seen through alpha, the specular reflection is added light.
     premult = (body * alpha)[..., None] * np.asarray(tint)[None, None, :] + (spec * edge)[..., None]
     return alpha, premult
 
 
-def _bubble(dx, dy, r, flat, q, leds) -> tuple[np.ndarray, np.ndarray]:
+def _bubble(dx, dy, r, flat, q, leds, look: SimConfig) -> tuple[np.ndarray, np.ndarray]:
     """An air bubble: thick dark ring, bright centre, strong highlights (alpha, premult)."""
     dist = np.sqrt(dx * dx + dy * dy)
     d = dist / r
@@ -353,6 +371,56 @@ def _bubble(dx, dy, r, flat, q, leds) -> tuple[np.ndarray, np.ndarray]:
     level = BUBBLE_CENTRE * (1 - ring) + BUBBLE_RING * ring
     alpha = edge * (BUBBLE_CENTRE_ALPHA * (1 - ring) + BUBBLE_RING_ALPHA * ring)
     sigma = max(SPECULAR_SIGMA * 1.3 * r, SPECULAR_MIN_PX)
-    spec = 1.2 * SPECULAR_PEAK * _highlights(dx, dy, 0.8 * r, q, leds, sigma)
+    spec = 1.2 * look.specular_peak * _highlights(dx, dy, 0.8 * r, q, leds, sigma)
     premult = np.repeat((level * alpha + spec * edge)[..., None], 3, axis=2)
     return alpha, premult
+
+
+def saturation_matrix(saturation: float) -> np.ndarray | None:
+    """(3, 3) float32 colour matrix scaling RGB saturation about the luma (None at 1).
+
+    0 makes a monochrome camera (every channel the luma), above 1 boosts colour.
+    """
+    if saturation == 1.0:
+        return None
+    luma = np.array([0.299, 0.587, 0.114], np.float32)  # ITU-R BT.601, RGB order
+    grey = np.repeat(luma[None, :], 3, axis=0)
+    return (saturation * np.eye(3, dtype=np.float32) + (1.0 - saturation) * grey).astype(np.float32)
+
+
+def background_print(
+    config: SimConfig, x: np.ndarray, y: np.ndarray, rng: np.random.Generator, size: int
+) -> np.ndarray:
+    """(S, S) float 0..1: the print on the background (1: ink), anti-aliased.
+
+    x: (1, S) mm, y: (S, 1) mm of pixel centres; the print is turned by a random angle
+    and shifted by a random phase (from ``rng``, the pouch's static look). Patterns:
+    dots (a square lattice of dots), grid (thin lines), stripes, speckle (fine grain).
+    """
+    period = config.pattern_period_mm
+    angle = rng.uniform(0.0, math.pi / 2)
+    phase = rng.uniform(0.0, period, 2)
+    c, s_ = math.cos(angle), math.sin(angle)
+    u = (x * c - y * s_ + phase[0]) / period  # in periods
+    v = (x * s_ + y * c + phase[1]) / period
+    px = period * size / config.sensor_size_mm  # pixels per period (anti-aliasing width)
+    aa = 1.0 / max(px, 1e-6)  # one pixel, in periods
+
+    def line(t: np.ndarray, half_width: float) -> np.ndarray:
+        dist = np.abs(t - np.round(t))  # 0..0.5 periods from the nearest line
+        return np.clip((half_width - dist) / aa + 0.5, 0.0, 1.0)
+
+    pattern = config.background_pattern
+    if pattern == "dots":
+        du, dv = u - np.round(u), v - np.round(v)
+        dist = np.sqrt(du * du + dv * dv)
+        ink = np.clip((0.3 - dist) / aa + 0.5, 0.0, 1.0)
+    elif pattern == "grid":
+        ink = np.maximum(line(u, 0.08), line(v, 0.08))
+    elif pattern == "stripes":
+        ink = line(u, 0.25)
+    else:  # speckle: fine random grain on a grid of SPECKLE_SCALE_MM
+        cells = max(4, int(config.sensor_size_mm / SPECKLE_SCALE_MM))
+        grain = rng.random((cells, cells)).astype(np.float32)
+        ink = cv2.resize(grain, (size, size), interpolation=cv2.INTER_LINEAR)
+    return np.asarray(ink, np.float32)

@@ -22,6 +22,7 @@ import numpy as np
 from beadsight.config import REFERENCE_G_TO_N
 from beadsight.errors import ConfigError
 from beadsight.sim.config import SimConfig
+from beadsight.sim.looks import LookDraws, LookSample
 from beadsight.sim.press import PROFILES, Press, PressCycle, check_profile, draw_profile
 from beadsight.sim.scale import SimulatedScale
 from beadsight.sim.simulator import PouchSimulator
@@ -83,7 +84,9 @@ class SimulatedSession:
     ``config`` as its base (bead count, light, camera and image vary; rig, scale and
     timing stay ``config``'s); None: every pouch is ``config``. The same seed gives
     the same session; a finite session's presses are the first presses of the
-    endless one with that seed.
+    endless one with that seed. looks: ``"train"``, ``"heldout"`` or one family of
+    :mod:`beadsight.sim.looks`: every pouch draws a family (uniformly) and its
+    parameters, applied on top of its config or build; None: the reference look.
     """
 
     def __init__(
@@ -97,15 +100,19 @@ class SimulatedSession:
         presses_per_pouch: int | None = None,
         variety: str | None = None,
         profile: str = "reference",
+        looks: str | None = None,
     ):
         self.config = config if config is not None else SimConfig()
         self.seed = seed
-        # A sixth stream for variety, a seventh for profiles: the first five are those of
-        # sessions without them (spawned children do not depend on how many are spawned).
-        streams = np.random.SeedSequence(seed).spawn(7)
+        # A sixth stream for variety, a seventh for profiles, an eighth for looks: the first
+        # five are those of sessions without them (SeedSequence children do not depend on
+        # how many are spawned).
+        streams = np.random.SeedSequence(seed).spawn(8)
         sim_seq, scale_seq, plan_seq, clock_seq, self._pouch_seq, variety_seq = streams[:6]
         self.profile = check_profile(profile)
         self._profile_rng = np.random.default_rng(streams[6])
+        self.looks = looks
+        self._looks = None if looks is None else LookDraws(looks, streams[7])
         self.variety = variety
         self._builds: list[PouchSample] = []
         if variety is not None:
@@ -148,8 +155,18 @@ class SimulatedSession:
             self._builds.append(self._distribution.sample(self._variety_rng, self.variety))
         return self._builds[index]
 
+    def pouch_look(self, index: int) -> LookSample:
+        """The look drawn for pouch ``index`` of a ``looks`` session, applied to its build."""
+        if self._looks is None:
+            raise ConfigError("pouch_look: this session has no looks (every pouch is config's)")
+        base = self.config if self.variety is None else self.pouch_build(index).config
+        return self._looks.get(index, base)
+
     def pouch_config(self, index: int) -> SimConfig:
-        """The simulated sensor of pouch ``index``: ``config``, or its drawn build."""
+        """The simulated sensor of pouch ``index``: ``config``, or its drawn build, with
+        its drawn look on top (``looks``)."""
+        if self._looks is not None:
+            return self.pouch_look(index).config
         return self.config if self.variety is None else self.pouch_build(index).config
 
     # --- the plan -----------------------------------------------------------------------
