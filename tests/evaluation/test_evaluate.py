@@ -16,16 +16,11 @@ from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.dataset import DatasetError, open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.splits import split_presses, window_ends
+from beadsight.data.windows import resize_frames
 from beadsight.data.writer import DatasetWriter
-from beadsight.evaluation.evaluate import (
-    EvaluationError,
-    WindowReader,
-    evaluate,
-    read_windows,
-    select_split,
-)
+from beadsight.evaluation.evaluate import EvaluationError, evaluate, select_split
 from beadsight.geometry import total_force_n
-from beadsight.train.windows import dataset_fingerprint, resize_frames
+from beadsight.train.windows import dataset_fingerprint
 
 REQUIRED_KEYS = {
     "mae_kpa",
@@ -217,35 +212,6 @@ def test_bad_arguments(make_dataset, model_file, tmp_path):
         evaluate(model_file, data, batch_size=0, progress=False)
     with pytest.raises(DatasetError, match="not found"):
         evaluate(model_file, tmp_path / "missing.h5", progress=False)
-
-
-def test_read_windows(make_dataset):
-    data = make_dataset(presses=3, frames_per_press=30)
-    with open_dataset(data) as ds:
-        ends = np.array([20, 21, 50, 89])
-        windows = read_windows(ds, ends, 15)
-        assert windows.shape == (4, 15, 64, 64, 3) and windows.dtype == np.uint8
-        for k, e in enumerate(ends):
-            np.testing.assert_array_equal(windows[k], ds.read_frames(e - 14, e + 1))
-
-
-def test_window_reader_reuses_overlap(make_dataset):
-    data = make_dataset(presses=3, frames_per_press=30)
-    with open_dataset(data) as ds:
-        reader = WindowReader(ds, 15)
-        reads = []
-        original = ds.read_frames
-        ds.read_frames = lambda a, b: reads.append((a, b)) or original(a, b)
-        batches = [np.array([14, 15, 16]), np.array([17, 18, 40]), np.array([41, 70, 89])]
-        for ends in batches:
-            windows = reader(ends)
-            for k, e in enumerate(ends):
-                np.testing.assert_array_equal(windows[k], original(e - 14, e + 1))
-        # Frames 3..16 are kept from the first batch; only new frames are read.
-        assert reads[:2] == [(0, 17), (17, 19)]
-        assert sum(b - a for a, b in reads) == len(
-            set().union(*(range(e - 14, e + 1) for ends in batches for e in ends))
-        )
 
 
 def test_resize_to_checkpoint_size(make_dataset, tmp_path):

@@ -41,6 +41,7 @@ from beadsight.checkpoint import PressureModel
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
+from beadsight.data.windows import WindowReader
 from beadsight.evaluation.config import DEFAULT_DEVICE, DEFAULT_SPLIT
 from beadsight.evaluation.config import EVALUATE_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.evaluation.metrics import PAPER_METRICS, FrameMetrics, MetricsAccumulator
@@ -71,11 +72,9 @@ __all__ = [
     "SPLIT_CHOICES",
     "EvaluationError",
     "SplitSelection",
-    "WindowReader",
     "evaluate",
     "evaluation_frames",
     "evaluation_geometry",
-    "read_windows",
     "select_split",
     "subsample",
     "write_metrics_json",
@@ -102,59 +101,7 @@ DEFINITIONS = {
 }
 
 
-# --- reading ------------------------------------------------------------------------
-class WindowReader:
-    """Reads frame windows for batches of end frames in increasing order.
-
-    The frames a batch shares with the previous one (the last ``span - 1``) are
-    reused instead of read again; each contiguous run of the rest is read once.
-    """
-
-    def __init__(self, ds: Dataset, span: int, image_size: int | None = None):
-        self.ds = ds
-        self.span = span
-        self.image_size = image_size or ds.image_size  # frames are resized to this (INTER_AREA)
-        self._offsets = np.arange(span - 1, -1, -1, dtype=np.int64)
-        self._index = np.zeros(0, dtype=np.int64)  # sorted frame indices held in _frames
-        self._frames = np.zeros((0, self.image_size, self.image_size, 3), dtype=np.uint8)
-
-    def _read(self, start: int, stop: int) -> np.ndarray:
-        frames = self.ds.read_frames(start, stop)
-        if self.image_size == self.ds.image_size:
-            return frames
-        from beadsight.train.windows import resize_frames
-
-        return resize_frames(frames, self.image_size)
-
-    def __call__(self, ends: np.ndarray) -> np.ndarray:
-        """(B,) end indices -> (B, span, S, S, 3) uint8 RGB windows, oldest frame first.
-
-        S is ``image_size``."""
-        ends = np.asarray(ends, dtype=np.int64)
-        wanted = ends[:, None] - self._offsets[None]  # (B, T)
-        need = np.unique(wanted)
-        if need.size and (need[0] < 0 or need[-1] >= len(self.ds)):
-            raise IndexError(
-                f"windows need frames {need[0]}..{need[-1]}; {self.ds.path} has {len(self.ds)}"
-            )
-        block = np.empty((need.size, *self._frames.shape[1:]), dtype=np.uint8)
-        have = np.isin(need, self._index)
-        block[have] = self._frames[np.searchsorted(self._index, need[have])]
-        missing = need[~have]
-        if missing.size:
-            runs = np.split(missing, np.flatnonzero(np.diff(missing) != 1) + 1)
-            block[~have] = np.concatenate([self._read(int(r[0]), int(r[-1]) + 1) for r in runs])
-        keep = max(need.size - (self.span - 1), 0)
-        self._index, self._frames = need[keep:], block[keep:].copy()
-        return block[np.searchsorted(need, wanted)]
-
-
-def read_windows(ds: Dataset, ends: np.ndarray, span: int) -> np.ndarray:
-    """Frame windows ending at ``ends``: (B,) indices -> (B, span, S, S, 3) uint8 RGB, oldest
-    first."""
-    return WindowReader(ds, span)(ends)
-
-
+# --- geometry -----------------------------------------------------------------------
 def evaluation_geometry(model: PressureModel, ds: Dataset, resize: bool = False) -> SensorGeometry:
     """The geometry of the evaluated maps: the dataset's, at the model's image size.
 
