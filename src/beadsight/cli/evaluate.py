@@ -61,6 +61,14 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
         "auto, none, reference, reference-linear, or a fisheye calibration .json "
         "(video input only)",
     )
+    p.add_argument(
+        "--rest",
+        type=Path,
+        default=None,
+        help="rest-referenced models: an image (PNG) of the unloaded pouch in sensor space, at "
+        "least the model's size; default: a dataset's own rest frames, or the average of a "
+        "video's first frames",
+    )
     _batch_and_device(p, config.PREDICT_BATCH_SIZE)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -126,6 +134,7 @@ def run_predict(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         device=args.device,
         progress=not args.no_progress,
+        rest=args.rest,
     )
     print(summarize_predictions(out))
     return 0
