@@ -109,9 +109,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
         f"{presses} press{'es' if presses != 1 else ''}, {metrics['checkpoint']} on "
         f"{metrics['dataset']}"
     )
+    rest = ", or a rest image before it" if metrics["model_config"].get("rest_input") else ""
     print(
         f"coverage: {metrics['coverage']:.1%} of the split's {metrics['valid_frames']} valid "
-        "frames (the others lack a full window of valid history, or --max-frames skipped them)"
+        f"frames (the others lack a full window of valid history{rest}, or --max-frames "
+        "skipped them)"
     )
     print(format_metrics_table(metrics, metrics.get("baselines")))
     print(f"wrote {args.out}: " + ", ".join(metrics.get("files", {}).values()))

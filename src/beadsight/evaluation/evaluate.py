@@ -3,17 +3,21 @@
 :func:`evaluate` runs the model over every frame of the chosen split that ends a
 full window of valid, continuous history (the same frames training samples, via
 :func:`beadsight.data.splits.dataset_window_ends`; a window may reach into the
-previous press), compares with the ground truth of
+previous press). A rest-referenced model scores only frames with a rest image before
+them, and each input gets it by training's rule (:mod:`beadsight.data.rest`, read by
+:mod:`beadsight.data.windows`). It compares with the ground truth of
 :func:`beadsight.data.labels.label_maps`, and accumulates the metrics of
 :mod:`beadsight.evaluation.metrics` batch by batch. With ``out_dir`` it writes:
 
 * ``metrics.json``: the metrics (strict JSON, no NaN), counts, split, names, and
   ``coverage`` (frames evaluated / valid frames of the split) and ``window_coverage``
-  (frames with a full window of history / valid frames);
+  (frames with a full window of history, and for a rest-referenced model a rest image,
+  / valid frames);
 * ``predictions.h5``: ``pred_kpa``/``gt_kpa`` (N, H, W) float32 (gzip),
   ``force_gt_n``/``force_pred_n`` (N,) N, ``cop_gt_mm``/``cop_pred_mm`` (N, 2) mm
   (NaN where that map has no positive pressure), ``index`` (N,) dataset frame
-  index, appended batch by batch under a temporary name;
+  index, appended batch by batch under a temporary name (attribute ``rest_source``:
+  ``"dataset"`` for a rest-referenced model, else ``"none"``);
 * ``examples.png``, ``region_error.png``, ``force_traces.png``;
 * ``index.html``: the report page (:mod:`beadsight.evaluation.report`).
 
@@ -53,6 +57,7 @@ from beadsight.evaluation.plots import (
 )
 from beadsight.evaluation.predict import IncrementalH5, as_model
 from beadsight.evaluation.report import REPORT_FILE, evaluation_report, write_report
+from beadsight.evaluation.rest_images import REST_FROM_DATASET, REST_NONE
 from beadsight.evaluation.selection import (
     SPLIT_CHOICES,
     EvaluationError,
@@ -244,7 +249,7 @@ def evaluate(
         else:
             selection = given_presses(ds, presses, train_presses)
         ends = evaluation_frames(model, ds, selection, max_frames)
-        covered = coverage(ds, selection, model.span, ends.size)
+        covered = coverage(ds, selection, model.span, ends.size, rest=bool(model.rest))
         log.info(
             "evaluating %s on %d frames of %d presses (%s split, %s) of %s: coverage %.1f%% "
             "of the split's %d valid frames (%.1f%% have a full window%s)",
@@ -289,7 +294,7 @@ class _Run:
     def baseline_maps(self, selection: SplitSelection, ends: np.ndarray) -> dict[str, np.ndarray]:
         """The constant maps scored as baselines: all-zero and the mean training label."""
         ds, s = self.ds, self.geometry.image_size_px
-        train_ends = selection_ends(ds, selection, self.model.span, train=True)
+        train_ends = selection_ends(ds, selection, self.model.span, True, bool(self.model.rest))
         source = train_ends if train_ends.size else ends
         return {
             "zero": np.zeros((s, s), np.float32),
@@ -309,7 +314,7 @@ class _Run:
         accs = {name: MetricsAccumulator(self.geometry) for name in ("model", *base_maps)}
         examples = _example_frames(ds, ends, EXAMPLE_PRESSES)
         col = _Collected(examples, ds.press_id[examples[:TRACE_PRESSES]], {}, [])
-        reader = WindowReader(ds, model.span, self.geometry.image_size_px)
+        reader = WindowReader(ds, model.span, self.geometry.image_size_px, bool(model.rest))
         with ExitStack() as stack:
             writer = None
             if out is not None:
@@ -388,6 +393,7 @@ def _prediction_attrs(
         "dataset": str(ds.path),
         "split": selection.name,
         "geometry": geometry.to_json(),
+        "rest_source": REST_FROM_DATASET if model.rest else REST_NONE,
         "units": json.dumps(
             {
                 "pred_kpa": "kPa",
