@@ -8,14 +8,12 @@ import signal
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
-from synthetic_presses import make_press_arrays, synthetic_press_frames
+from synthetic_presses import write_synthetic_dataset
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.data.writer import DatasetWriter
 
 TINY = SensorGeometry(image_size_px=64)
 
@@ -51,16 +49,9 @@ def make_dataset(tmp_path: Path):
         name: str = "tiny.h5",
         fps: float = 30.0,
     ) -> Path:
-        geometry = SensorGeometry(image_size_px=image_size)
-        rng = np.random.default_rng(seed)
-        force, position = make_press_arrays(presses, frames_per_press, geometry, rng)
-        frames = synthetic_press_frames(force, position, geometry, rng)
-        n = len(force)
-        t = 1.7e9 + np.arange(n) / fps
-        path = tmp_path / name
-        with DatasetWriter(path, geometry, fps=fps, provenance={"source": "test-fixture"}) as w:
-            w.append(frames, force, position, np.ones(n, bool), t)
-        return path
+        return write_synthetic_dataset(
+            tmp_path / name, presses, frames_per_press, image_size, seed, fps
+        )
 
     return make
 
@@ -131,3 +122,37 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def rest_run(tmp_path_factory) -> tuple[Path, Path]:
+    """A rest-referenced model trained 2 steps on a tiny dataset: (dataset, checkpoint).
+
+    The dataset: 6 presses of 40 frames at 32 px (the first press has no rest image before
+    it); the model: width 4, 3 frames, its split stored in the checkpoint."""
+    from beadsight.train.config import TrainConfig
+    from beadsight.train.trainer import train
+
+    root = tmp_path_factory.mktemp("rest_run")
+    data = write_synthetic_dataset(root / "rest.h5", image_size=32)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        train(
+            TrainConfig(
+                data=str(data),
+                out=str(root / "run"),
+                rest_input=True,
+                width=4,
+                frames=3,
+                steps=2,
+                batch_size=8,
+                device="cpu",
+                loader="device",
+                progress=False,
+                checkpoint_every_min=1e6,
+            )
+        )
+    finally:
+        torch.set_num_threads(threads)
+    return data, root / "run" / "best.pt"

@@ -6,8 +6,12 @@ reference-file tests; a normal module, so any test folder can import it.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
+from beadsight.config import SensorGeometry
+from beadsight.data.writer import DatasetWriter
 from beadsight.geometry import mm_to_px
 
 
@@ -38,3 +42,23 @@ def make_press_arrays(presses: int, frames_per_press: int, geometry, rng):
     force = (peak[:, None] * shape[None]).reshape(-1)
     position = np.repeat(xy, frames_per_press, axis=0)
     return force, position
+
+
+def write_synthetic_dataset(
+    path: Path,
+    presses: int = 6,
+    frames_per_press: int = 40,
+    image_size: int = 64,
+    seed: int = 0,
+    fps: float = 30.0,
+) -> Path:
+    """A dataset file of synthetic presses (all frames valid, one press after another)."""
+    geometry = SensorGeometry(image_size_px=image_size)
+    rng = np.random.default_rng(seed)
+    force, position = make_press_arrays(presses, frames_per_press, geometry, rng)
+    frames = synthetic_press_frames(force, position, geometry, rng)
+    n = len(force)
+    t = 1.7e9 + np.arange(n) / fps
+    with DatasetWriter(path, geometry, fps=fps, provenance={"source": "test-fixture"}) as w:
+        w.append(frames, force, position, np.ones(n, bool), t)
+    return path

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import h5py
 import pytest
 
 from beadsight.checkpoint import CheckpointError, load_checkpoint, shipped_model_path
@@ -68,6 +69,20 @@ def test_demo_with_a_checkpoint(tmp_path, tiny_model, capsys):
     assert main(again) == 0
     assert (out / "heldout.h5").is_file()
     assert json.loads((out / "demo.json").read_text())["frames_evaluated"] == 4
+
+
+def test_demo_with_a_rest_referenced_checkpoint(tmp_path, rest_run, capsys):
+    """A rest-referenced model runs the whole demo: evaluation and animation give each
+    input its rest image from the simulated recording."""
+    out = tmp_path / "report"
+    argv = ["demo", "--checkpoint", str(rest_run[1]), "--out", str(out), "--no-progress"]
+    assert main(argv + "--presses 1 --max-frames 24 --animation-frames 12".split()) == 0
+    assert "pressure MAE (kPa)" in capsys.readouterr().out
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["model_config"]["rest_input"] is True and metrics["frames"] == 24
+    with h5py.File(out / "predictions.h5", "r") as f:
+        assert f.attrs["rest_source"] == "dataset"
+    assert (out / "animation.gif").stat().st_size > 0
 
 
 def test_demo_refuses_a_foreign_folder(tmp_path, tiny_model, capsys):

@@ -20,6 +20,7 @@ from beadsight.cli import main
 from beadsight.config import ModelConfig
 from beadsight.data.dataset import open_dataset
 from beadsight.data.reference_file import export_reference
+from beadsight.data.rest import rest_ends
 from beadsight.evaluation.evaluate import EvaluationError, evaluate
 from beadsight.model import UNet
 from beadsight.train.config import TrainConfig
@@ -58,6 +59,24 @@ def test_coverage_in_metrics_json_and_printed(make_dataset, tiny_model, tmp_path
     assert metrics["coverage"] == pytest.approx((240 - 14) / 240)
     assert metrics["frames"] == 226 and metrics["valid_frames"] == 240
     assert "coverage: 94.2% of the split's 240 valid frames" in capsys.readouterr().out
+
+
+def test_frames_without_a_rest_image_are_not_covered(rest_run, tmp_path, capsys):
+    """A rest-referenced model scores frames with a full window and a rest image before
+    them: the first press has none (8 unloaded frames, fewer than a settled run)."""
+    data, checkpoint = rest_run
+    out = tmp_path / "eval"
+    argv = ["evaluate", "--checkpoint", checkpoint, "--data", data, "--split", "all", "--out", out]
+    assert main([*map(str, argv), "--device", "cpu", "--no-plots", "--no-progress"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    with open_dataset(data) as ds:
+        first_rest = int(np.argmax(rest_ends(ds.force_n, ds.valid) >= 0))
+    assert first_rest == 46  # press 1's 8 unloaded frames after press 0's 8
+    assert metrics["frames"] == 240 - first_rest and metrics["valid_frames"] == 240
+    assert metrics["coverage"] == metrics["window_coverage"] == pytest.approx(194 / 240)
+    printed = capsys.readouterr().out
+    assert "coverage: 80.8% of the split's 240 valid frames" in printed
+    assert "or a rest image before it" in printed
 
 
 def test_a_test_split_window_may_reach_into_another_press(make_dataset, tiny_model):

@@ -4,29 +4,28 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 
 import h5py
 import numpy as np
 import pytest
 import torch
 
-from beadsight.checkpoint import CheckpointMeta, PressureModel
+from beadsight.checkpoint import CheckpointMeta, PressureModel, load_checkpoint
 from beadsight.cli import main
 from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.dataset import DatasetError, open_dataset
 from beadsight.data.labels import label_maps
-from beadsight.data.splits import split_presses, window_ends
+from beadsight.data.rest import REST_FRAMES, average_rest, rest_ends, with_rest
+from beadsight.data.splits import dataset_window_ends, split_presses, window_ends
+from beadsight.data.windows import resize_frames
 from beadsight.data.writer import DatasetWriter
-from beadsight.evaluation.evaluate import (
-    EvaluationError,
-    WindowReader,
-    evaluate,
-    read_windows,
-    select_split,
-)
+from beadsight.evaluation.animation import animation_frames, strongest_press
+from beadsight.evaluation.evaluate import EvaluationError, evaluate, select_split
 from beadsight.geometry import total_force_n
-from beadsight.train.windows import dataset_fingerprint, resize_frames
+from beadsight.train.windows import dataset_fingerprint
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # a shared 2-core machine
 REQUIRED_KEYS = {
     "mae_kpa",
     "force_error_pct",
@@ -219,35 +218,6 @@ def test_bad_arguments(make_dataset, model_file, tmp_path):
         evaluate(model_file, tmp_path / "missing.h5", progress=False)
 
 
-def test_read_windows(make_dataset):
-    data = make_dataset(presses=3, frames_per_press=30)
-    with open_dataset(data) as ds:
-        ends = np.array([20, 21, 50, 89])
-        windows = read_windows(ds, ends, 15)
-        assert windows.shape == (4, 15, 64, 64, 3) and windows.dtype == np.uint8
-        for k, e in enumerate(ends):
-            np.testing.assert_array_equal(windows[k], ds.read_frames(e - 14, e + 1))
-
-
-def test_window_reader_reuses_overlap(make_dataset):
-    data = make_dataset(presses=3, frames_per_press=30)
-    with open_dataset(data) as ds:
-        reader = WindowReader(ds, 15)
-        reads = []
-        original = ds.read_frames
-        ds.read_frames = lambda a, b: reads.append((a, b)) or original(a, b)
-        batches = [np.array([14, 15, 16]), np.array([17, 18, 40]), np.array([41, 70, 89])]
-        for ends in batches:
-            windows = reader(ends)
-            for k, e in enumerate(ends):
-                np.testing.assert_array_equal(windows[k], original(e - 14, e + 1))
-        # Frames 3..16 are kept from the first batch; only new frames are read.
-        assert reads[:2] == [(0, 17), (17, 19)]
-        assert sum(b - a for a, b in reads) == len(
-            set().union(*(range(e - 14, e + 1) for ends in batches for e in ends))
-        )
-
-
 def test_resize_to_checkpoint_size(make_dataset, tmp_path):
     """A checkpoint trained at 32 px (train --image-size 32) on 64 px data, with --resize."""
     torch.manual_seed(0)
@@ -282,3 +252,107 @@ def test_evaluate_on_cuda_matches_cpu(make_dataset, tiny_model):
     assert on_gpu["device"].startswith("cuda")
     for key in ("mae_kpa", "force_error_pct", "cop_error_mm", "iou"):
         assert on_gpu[key] == pytest.approx(on_cpu[key], rel=1e-3, abs=1e-4), key
+
+
+# --- rest-referenced models and old checkpoints ---------------------------------------
+def _rest_input(ds, end: int, span: int) -> np.ndarray:
+    """A rest model's input built by hand: the rest image of data.rest's rule, then the
+    window (frames at the dataset's size)."""
+    r = int(rest_ends(ds.force_n, ds.valid)[end])
+    assert r >= 0
+    rest = average_rest(ds.read_frames(r - REST_FRAMES + 1, r + 1))
+    return with_rest(rest, ds.read_frames(end - span + 1, end + 1))
+
+
+def test_a_rest_model_is_scored_on_inputs_with_their_rest_images(rest_run, tmp_path):
+    data, checkpoint = rest_run
+    model = load_checkpoint(checkpoint)
+    assert model.rest and model.span == 3
+    out = tmp_path / "eval"
+    metrics = evaluate(
+        checkpoint,
+        data,
+        split="all",
+        out_dir=out,
+        device="cpu",
+        plots=False,
+        report=False,
+        baselines=True,
+        progress=False,
+    )
+    assert metrics["model_config"]["rest_input"] is True
+    with open_dataset(data) as ds, h5py.File(out / "predictions.h5", "r") as f:
+        assert f.attrs["rest_source"] == "dataset"
+        index = f["index"][()]
+        np.testing.assert_array_equal(index, dataset_window_ends(ds, 3, rest=True))
+        assert not (ds.press_id[index] == 0).any()  # press 0 has no rest image before it
+        assert (rest_ends(ds.force_n, ds.valid)[index] >= 0).all()
+        inputs = np.stack([_rest_input(ds, e, 3) for e in index.tolist()])
+        np.testing.assert_allclose(f["pred_kpa"][()], model.predict(inputs), rtol=1e-5, atol=1e-5)
+        # the rest image matters: another rest image (the window's first frame) predicts else
+        other = inputs.copy()
+        other[:, 0] = inputs[:, 1]
+        assert np.abs(model.predict(other) - f["pred_kpa"][()]).max() > 1e-3
+        covered = index.size / len(ds)
+        test_frames = dataset_window_ends(ds, 3, model.meta.training["split"]["test"], rest=True)
+    assert metrics["frames"] == index.size and metrics["valid_frames"] == 240
+    assert metrics["coverage"] == metrics["window_coverage"] == pytest.approx(covered)
+    assert covered < (240 - 2) / 240  # windows without a rest image are not covered
+    # the test split is the checkpoint's, its frames those with a rest image
+    test = evaluate(checkpoint, data, device="cpu", plots=False, progress=False)
+    assert test["split_source"] == "checkpoint" and test["frames"] == test_frames.size
+    assert 0 < test["coverage"] < 1
+
+
+def test_old_checkpoint_figures_are_unchanged(make_dataset, tiny_model, tmp_path):
+    """A model without rest input scores what it scored before rest models (figures
+    recorded on main at 537f9ef with this fixture), and its predictions are the plain
+    windows'."""
+    data = make_dataset()
+    out = tmp_path / "eval"
+    metrics = evaluate(
+        tiny_model,
+        data,
+        split="all",
+        out_dir=out,
+        device="cpu",
+        plots=False,
+        report=False,
+        baselines=True,
+        progress=False,
+    )
+    recorded = {
+        "mae_kpa": 4.75911453479191,
+        "force_error_pct": 61.19470498421444,
+        "cop_error_mm": 10.786484091599457,
+        "iou": 0.11826646639595896,
+    }
+    for key, value in recorded.items():
+        assert metrics[key] == pytest.approx(value, rel=1e-5), key
+    assert metrics["baselines"]["mean_gt"]["mae_kpa"] == pytest.approx(4.478115269018249)
+    assert metrics["frames"] == 226 and metrics["coverage"] == pytest.approx(226 / 240)
+    with open_dataset(data) as ds, h5py.File(out / "predictions.h5", "r") as f:
+        assert f.attrs["rest_source"] == "none"
+        e = int(f["index"][7])
+        expected = tiny_model.predict(ds.read_frames(e - 14, e + 1))
+        np.testing.assert_allclose(f["pred_kpa"][7], expected, rtol=1e-5, atol=1e-5)
+
+
+def test_animation_of_a_rest_model_skips_presses_without_a_rest_image(rest_run, tmp_path):
+    data = tmp_path / "strong_first.h5"
+    shutil.copy(rest_run[0], data)
+    with h5py.File(data, "r+") as f:
+        f["force"][:40] = f["force"][:40] * 5  # press 0, with no rest before it, is strongest
+    model = load_checkpoint(rest_run[1])
+    with open_dataset(data) as ds:
+        peaks = [ds.force_n[a:b].max() for a, b in ds.presses]
+    assert int(np.argmax(peaks)) == 0
+    press = strongest_press(data, model)
+    assert press == 1 + int(np.argmax(peaks[1:]))
+    clip = animation_frames(model, data, press, batch_size=4, count=12)
+    with open_dataset(data) as ds:
+        index = clip["index"]
+        assert index.size == 12 and (ds.press_id[index] == press).all()
+        inputs = np.stack([_rest_input(ds, e, 3) for e in index.tolist()])
+        np.testing.assert_array_equal(clip["frames"], ds.read_frames_at(index))
+    np.testing.assert_allclose(clip["pred"], model.predict(inputs), rtol=1e-5, atol=1e-5)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import cv2
@@ -9,12 +10,17 @@ import h5py
 import numpy as np
 import pytest
 
+from beadsight.checkpoint import load_checkpoint
 from beadsight.cli import main
 from beadsight.data.dataset import open_dataset
+from beadsight.data.rest import REST_FRAMES, REST_MAX_FORCE_N, average_rest, rest_ends, with_rest
+from beadsight.data.windows import WindowReader
 from beadsight.evaluation.predict import PredictionError, WindowBuffer, predict_recording
+from beadsight.evaluation.rest_images import RestFileError
 from beadsight.geometry import total_force_n
 
 FPS = 30.0
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # a shared 2-core machine
 
 
 def write_video(path: Path, frames_bgr: np.ndarray, fps: float = FPS) -> Path:
@@ -186,3 +192,109 @@ def test_window_buffer_matches_slicing(window):
             np.testing.assert_array_equal(windows[k - first], stream[end - window + 1 : end + 1])
         pos += size
     assert got == list(range(window - 1, 23))
+
+
+# --- rest-referenced models -------------------------------------------------------------
+def _rest_video(data: Path, tmp_path: Path) -> tuple[Path, np.ndarray]:
+    """An MJPG video of frames 32..91 of ``data`` (it starts with the 8 unloaded frames that
+    end press 0); returns it and its decoded RGB frames."""
+    with open_dataset(data) as ds:
+        frames = ds.read_frames(32, 92)
+        assert (ds.force_n[32:40] <= REST_MAX_FORCE_N).all()
+    video = write_video(tmp_path / "pouch.avi", frames[..., ::-1])
+    return video, read_video_rgb(video)
+
+
+def test_rest_model_on_a_video_rests_on_its_first_frames(rest_run, tmp_path, caplog):
+    data, checkpoint = rest_run
+    model = load_checkpoint(checkpoint)
+    video, decoded = _rest_video(data, tmp_path)
+    n, first = len(decoded), REST_FRAMES - 1  # frame 7 ends the rest image (span 3 < 8)
+    with caplog.at_level(logging.INFO, logger="beadsight.evaluation.rest_images"):
+        out = predict_recording(
+            checkpoint, video, tmp_path / "o.h5", device="cpu", batch_size=4, progress=False
+        )
+    assert f"average of the input's first {REST_FRAMES} frames" in caplog.text
+    rest = average_rest(decoded[:REST_FRAMES])
+    with h5py.File(out, "r") as f:
+        assert f.attrs["rest_source"] == "stream_start" and "rest_file" not in f.attrs
+        assert f"first {REST_FRAMES} frames" in f.attrs["rest_note"]
+        np.testing.assert_array_equal(f["valid"][()], np.arange(n) >= first)
+        maps = f["pressure_kpa"][()]
+        assert not maps[:first].any()
+        inputs = np.stack([with_rest(rest, decoded[e - 2 : e + 1]) for e in range(first, n)])
+        np.testing.assert_allclose(maps[first:], model.predict(inputs), rtol=1e-5, atol=1e-5)
+
+
+def test_rest_model_on_a_video_with_a_rest_file(rest_run, tmp_path, capsys):
+    data, checkpoint = rest_run
+    model = load_checkpoint(checkpoint)
+    video, decoded = _rest_video(data, tmp_path)
+    large = textured_frames(1, 64, 64, seed=9)[0]  # RGB, twice the model's size
+    png = tmp_path / "rest.png"
+    assert cv2.imwrite(str(png), large[..., ::-1])
+    out = tmp_path / "o.h5"
+    argv = ["predict", "--checkpoint", checkpoint, "--input", video, "--out", out, "--rest", png]
+    assert main([*map(str, argv), "--device", "cpu", "--no-progress"]) == 0
+    assert "and a rest image: file" in capsys.readouterr().out
+    rest = cv2.resize(large, (32, 32), interpolation=cv2.INTER_AREA)
+    n = len(decoded)
+    with h5py.File(out, "r") as f:
+        assert f.attrs["rest_source"] == "file" and f.attrs["rest_file"] == str(png)
+        np.testing.assert_array_equal(f["valid"][()], np.arange(n) >= 2)  # span 3
+        inputs = np.stack([with_rest(rest, decoded[e - 2 : e + 1]) for e in range(2, n)])
+        expected = model.predict(inputs)
+        np.testing.assert_allclose(f["pressure_kpa"][2:], expected, rtol=1e-5, atol=1e-5)
+        # not the stream's first frames: the file's image made the difference
+        stream = [with_rest(average_rest(decoded[:8]), decoded[e - 2 : e + 1]) for e in (9, 30)]
+        assert np.abs(model.predict(np.stack(stream)) - expected[[7, 28]]).max() > 1e-3
+
+
+def test_rest_model_on_a_dataset_uses_the_dataset_rule(rest_run, tmp_path):
+    data, checkpoint = rest_run
+    model = load_checkpoint(checkpoint)
+    out = predict_recording(checkpoint, data, tmp_path / "o.h5", device="cpu", progress=False)
+    with open_dataset(data) as ds, h5py.File(out, "r") as f:
+        rests = rest_ends(ds.force_n, ds.valid)
+        valid = (np.arange(len(ds)) >= 2) & (rests >= 0)
+        assert f.attrs["rest_source"] == "dataset"
+        np.testing.assert_array_equal(f["valid"][()], valid)
+        ends = np.flatnonzero(valid)
+        assert ends.size and not (ds.press_id[ends] == 0).any()
+        inputs = WindowReader(ds, 3, rest=True)(ends)
+        for k, e in enumerate(ends[[0, ends.size // 2, -1]].tolist()):
+            r = int(rests[e])
+            rest = average_rest(ds.read_frames(r - REST_FRAMES + 1, r + 1))
+            np.testing.assert_array_equal(inputs[[0, ends.size // 2, -1][k], 0], rest)
+        maps = f["pressure_kpa"][()]
+        np.testing.assert_allclose(maps[ends], model.predict(inputs), rtol=1e-5, atol=1e-5)
+        assert not maps[~valid].any()
+
+
+def test_bad_rest_files_are_named(rest_run, tiny_model, tmp_path, capsys):
+    checkpoint = rest_run[1]
+    video = write_video(tmp_path / "v.avi", textured_frames(12, 32, 32)[..., ::-1])
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), textured_frames(1, 16, 16)[0])
+    wide = tmp_path / "wide.png"
+    cv2.imwrite(str(wide), textured_frames(1, 32, 48)[0])
+    junk = tmp_path / "junk.png"
+    junk.write_bytes(b"not an image")
+    for path, match in (
+        (small, r"rest file .*small\.png: the image is 16x16 px; .* at least 32x32 px"),
+        (wide, r"rest file .*wide\.png: the image is 48x32 px; .* square"),
+        (junk, r"rest file .*junk\.png: not an image OpenCV can read"),
+        (tmp_path / "missing.png", r"rest file .*missing\.png: not found"),
+    ):
+        with pytest.raises(RestFileError, match=match):
+            predict_recording(checkpoint, video, tmp_path / "o.h5", rest=path, progress=False)
+    assert not (tmp_path / "o.h5").exists() and not list(tmp_path.glob("*.partial"))
+    # a model without rest input refuses --rest; the command line says it in one line
+    plain = tiny_model.save(tmp_path / "plain.pt")
+    video64 = write_video(tmp_path / "v64.avi", textured_frames(16, 64, 64)[..., ::-1])
+    argv = ["predict", "--checkpoint", plain, "--input", video64, "--out", tmp_path / "o.h5"]
+    assert main([*map(str, argv), "--rest", str(small), "--no-progress"]) == 1
+    assert "not rest-referenced" in capsys.readouterr().err
+    argv = ["predict", "--checkpoint", checkpoint, "--input", video, "--out", tmp_path / "o.h5"]
+    assert main([*map(str, argv), "--rest", str(small), "--no-progress"]) == 1
+    assert "small.png: the image is 16x16 px" in capsys.readouterr().err

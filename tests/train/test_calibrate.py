@@ -13,10 +13,14 @@ from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
 from beadsight import load_checkpoint
 from beadsight.cli import main
 from beadsight.config import ConfigError, SensorGeometry
-from beadsight.data.dataset import DatasetError
+from beadsight.data.dataset import DatasetError, open_dataset
 from beadsight.data.reference_file import export_reference
+from beadsight.data.rest import average_rest, rest_ends, with_rest
+from beadsight.data.splits import dataset_window_ends
 from beadsight.data.writer import DatasetWriter
 from beadsight.evaluation.evaluate import evaluate
+from beadsight.geometry import total_force_n
+from beadsight.train.align import fit_force_gain
 from beadsight.train.calibrate import calibrate
 from beadsight.train.calibrate_config import CalibrateConfig
 
@@ -139,3 +143,51 @@ def test_bad_inputs_get_clear_errors(make_dataset, base, tmp_path, capsys):
     assert cli("--data", few, "--out", tmp_path / "out", "--base", base, *QUICK) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "at least 3" in err
+
+
+# --- rest-referenced base models -------------------------------------------------------
+def test_calibrate_a_rest_referenced_base(rest_run, tmp_path):
+    """A rest-referenced base is scored, fine-tuned and scored again on inputs with their
+    rest images (the dataset rule), and stays rest-referenced. (--skip 1: press 0 has no
+    rest image before it.)"""
+    data, base = rest_run
+    out = tmp_path / "cal"
+    config = CalibrateConfig(
+        data=str(data),
+        out=str(out),
+        base=str(base),
+        budget_min=0.1,
+        gain=True,
+        skip=1,
+        device="cpu",
+        progress=False,
+    )
+    metrics = calibrate(config)
+    record = metrics["calibration"]
+    assert record["fine_tuning"]["steps"] >= 1 and 0.2 <= record["force_gain"] <= 5.0
+    for name in ("model.pt", "aligned.pt", "train/best.pt"):
+        assert load_checkpoint(out / name).meta.model.rest_input, name
+    with open_dataset(data) as ds:
+        frames = dataset_window_ends(ds, 3, record["presses"]["test"], rest=True).size
+    assert metrics["frames"] == frames > 0
+    assert {stage["frames"] for stage in metrics["stages"].values()} == {frames}
+
+
+def test_force_gain_of_a_rest_model_uses_inputs_with_their_rest_images(rest_run):
+    data, checkpoint = rest_run
+    model = load_checkpoint(checkpoint)
+    presses = np.array([2, 3, 4, 5])
+    with open_dataset(data) as ds:
+        ends = dataset_window_ends(ds, 3, presses, rest=True)
+        ends = ends[ds.contact[ends]]
+        rests = rest_ends(ds.force_n, ds.valid)[ends]
+        inputs = np.stack(
+            [
+                with_rest(average_rest(ds.read_frames(r - 7, r + 1)), ds.read_frames(e - 2, e + 1))
+                for e, r in zip(ends.tolist(), rests.tolist(), strict=True)
+            ]
+        )
+        pred = total_force_n(model.predict(inputs), ds.geometry)
+        true = ds.force_n[ends]
+    expected = float(np.clip(np.dot(pred, true) / np.dot(pred, pred), 0.2, 5.0))
+    assert fit_force_gain(model, str(data), presses) == pytest.approx(expected, rel=1e-5)

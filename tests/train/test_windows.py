@@ -10,7 +10,8 @@ from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight.data.dataset import open_dataset
 from beadsight.data.labels import label_maps
-from beadsight.data.splits import split_presses, window_ends
+from beadsight.data.splits import dataset_window_ends, split_presses, window_ends
+from beadsight.data.windows import WindowReader
 from beadsight.train.augment import D4_ORDER, d4_batch, d4_transform
 from beadsight.train.windows import (
     DeviceFrames,
@@ -100,6 +101,25 @@ def test_device_mode_batches_equal_host_mode_items(tiny):
         f, t = host[int(i)]
         np.testing.assert_array_equal(frames[row].numpy(), f.numpy())
         np.testing.assert_allclose(targets[row].numpy(), t.numpy(), atol=1e-4)
+
+
+def test_rest_windows_are_the_evaluation_inputs_in_both_modes(tiny):
+    """Training's rest-referenced windows (host and device mode) are the inputs evaluation
+    reads for the same frames (data.windows.WindowReader): one builder."""
+    path, ds = tiny
+    ends = dataset_window_ends(ds, T, rest=True)
+    labels = WindowLabels.from_dataset(ds, ends, 32, rest=True)
+    store = DeviceFrames.load(ds, labels.frame_mask(T, len(ds)), 32, torch.device("cpu"), False)
+    device, host = DeviceWindows(store, labels, T), WindowDataset(path, labels, T)
+    idx = np.array([0, 5, len(labels) // 2, len(labels) - 1])
+    frames, _ = device.batch(idx)
+    expected = WindowReader(ds, T, 32, rest=True)(ends[idx])
+    assert frames.shape == (4, 1 + T, 32, 32, 3)
+    np.testing.assert_array_equal(frames.numpy(), expected)
+    for row, i in enumerate(idx.tolist()):
+        np.testing.assert_array_equal(host[i][0].numpy(), expected[row])
+    with pytest.raises(ValueError, match="no rest frames before them"):
+        WindowLabels.from_dataset(ds, window_ends(ds.press_id, ds.valid, T), 32, rest=True)
 
 
 def test_window_frame_mask_covers_exactly_the_windows_frames():

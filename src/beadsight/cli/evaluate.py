@@ -61,6 +61,14 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
         "auto, none, reference, reference-linear, or a fisheye calibration .json "
         "(video input only)",
     )
+    p.add_argument(
+        "--rest",
+        type=Path,
+        default=None,
+        help="rest-referenced models: an image (PNG) of the unloaded pouch in sensor space, at "
+        "least the model's size; default: a dataset's own rest frames, or the average of a "
+        "video's first frames",
+    )
     _batch_and_device(p, config.PREDICT_BATCH_SIZE)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -101,9 +109,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
         f"{presses} press{'es' if presses != 1 else ''}, {metrics['checkpoint']} on "
         f"{metrics['dataset']}"
     )
+    rest = ", or a rest image before it" if metrics["model_config"].get("rest_input") else ""
     print(
         f"coverage: {metrics['coverage']:.1%} of the split's {metrics['valid_frames']} valid "
-        "frames (the others lack a full window of valid history, or --max-frames skipped them)"
+        f"frames (the others lack a full window of valid history{rest}, or --max-frames "
+        "skipped them)"
     )
     print(format_metrics_table(metrics, metrics.get("baselines")))
     print(f"wrote {args.out}: " + ", ".join(metrics.get("files", {}).values()))
@@ -126,6 +136,7 @@ def run_predict(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         device=args.device,
         progress=not args.no_progress,
+        rest=args.rest,
     )
     print(summarize_predictions(out))
     return 0

@@ -125,7 +125,7 @@ def _evaluate_and_report(
         )
         timings["evaluate_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        press = strongest_press(data)
+        press = strongest_press(data, model)
         clip = animation_frames(model, data, press, config.batch_size, config.animation_frames)
         write_animation(clip, out / ANIMATION_FILE, sim_config.fps)
         timings["animation_s"] = time.perf_counter() - t0

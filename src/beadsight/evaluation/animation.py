@@ -35,25 +35,33 @@ def animation_frames(
     from beadsight.data.dataset import open_dataset
     from beadsight.data.labels import label_maps
     from beadsight.data.splits import dataset_window_ends
+    from beadsight.data.windows import WindowReader
     from beadsight.geometry import total_force_n
 
+    rest = bool(model.rest)
     with open_dataset(data) as ds:
         start, stop = (int(v) for v in ds.presses[press])
-        ends = dataset_window_ends(ds, model.span, np.array([press]))
+        ends = dataset_window_ends(ds, model.span, np.array([press]), rest=rest)
         lo, hi = start - ANIMATION_MARGIN_FRAMES, stop + ANIMATION_MARGIN_FRAMES
         ends = ends[(ends >= lo) & (ends < hi)][:count]
         if ends.size == 0:
-            raise BeadSightError(f"{data}: press {press} has no frame that ends a full window")
-        first = int(ends[0]) - model.span + 1
-        frames = ds.read_frames(first, int(ends[-1]) + 1)
-        windows = np.stack([frames[e - first - model.span + 1 : e - first + 1] for e in ends])
-        pred = model.predict(windows, batch_size=batch_size)
+            raise BeadSightError(
+                f"{data}: press {press} has no frame that ends a full window"
+                + (" with a rest image before it" if rest else "")
+            )
+        reader = WindowReader(ds, model.span, rest=rest)
+        frames, pred = [], []
+        for i in range(0, ends.size, batch_size):
+            inputs = reader(ends[i : i + batch_size])  # (B, inputs, S, S, 3)
+            frames.append(inputs[:, -1].copy())  # each window's newest frame
+            pred.append(model.predict(inputs, batch_size=batch_size))
+        pred = np.concatenate(pred)
         gt = label_maps(ds.force_n[ends], ds.position_mm[ends], ds.contact[ends], ds.geometry)
         geometry = ds.geometry
         time_s = ds.timestamp_s[ends] - ds.timestamp_s[ends[0]]
     return {
         "index": ends,
-        "frames": frames[ends - first],
+        "frames": np.concatenate(frames),
         "gt": gt,
         "pred": pred,
         "time_s": time_s,
@@ -62,14 +70,20 @@ def animation_frames(
     }
 
 
-def strongest_press(data: Path) -> int:
-    """Index of the press of ``data`` with the highest peak force."""
+def strongest_press(data: Path, model: PressureModel) -> int:
+    """Index of the press of ``data`` with the highest peak force, of those with a frame
+    that ``model`` can predict (a full window, and a rest image for a rest-referenced one)."""
     from beadsight.data.dataset import open_dataset
+    from beadsight.data.splits import dataset_window_ends
 
     with open_dataset(data) as ds:
         ds.require_presses()
+        ends = dataset_window_ends(ds, model.span, rest=bool(model.rest))
+        usable = np.isin(np.arange(ds.num_presses), ds.press_id[ends])
+        if not usable.any():
+            raise BeadSightError(f"{data}: no press has a frame that {model.source} can predict")
         peaks = [ds.force_n[a:b].max() for a, b in ds.presses]
-    return int(np.argmax(peaks))
+    return int(np.argmax(np.where(usable, peaks, -np.inf)))
 
 
 def colourise(maps_kpa: np.ndarray, vmax_kpa: float) -> np.ndarray:

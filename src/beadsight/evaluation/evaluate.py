@@ -3,17 +3,21 @@
 :func:`evaluate` runs the model over every frame of the chosen split that ends a
 full window of valid, continuous history (the same frames training samples, via
 :func:`beadsight.data.splits.dataset_window_ends`; a window may reach into the
-previous press), compares with the ground truth of
+previous press). A rest-referenced model scores only frames with a rest image before
+them, and each input gets it by training's rule (:mod:`beadsight.data.rest`, read by
+:mod:`beadsight.data.windows`). It compares with the ground truth of
 :func:`beadsight.data.labels.label_maps`, and accumulates the metrics of
 :mod:`beadsight.evaluation.metrics` batch by batch. With ``out_dir`` it writes:
 
 * ``metrics.json``: the metrics (strict JSON, no NaN), counts, split, names, and
   ``coverage`` (frames evaluated / valid frames of the split) and ``window_coverage``
-  (frames with a full window of history / valid frames);
+  (frames with a full window of history, and for a rest-referenced model a rest image,
+  / valid frames);
 * ``predictions.h5``: ``pred_kpa``/``gt_kpa`` (N, H, W) float32 (gzip),
   ``force_gt_n``/``force_pred_n`` (N,) N, ``cop_gt_mm``/``cop_pred_mm`` (N, 2) mm
   (NaN where that map has no positive pressure), ``index`` (N,) dataset frame
-  index, appended batch by batch under a temporary name;
+  index, appended batch by batch under a temporary name (attribute ``rest_source``:
+  ``"dataset"`` for a rest-referenced model, else ``"none"``);
 * ``examples.png``, ``region_error.png``, ``force_traces.png``;
 * ``index.html``: the report page (:mod:`beadsight.evaluation.report`).
 
@@ -41,6 +45,7 @@ from beadsight.checkpoint import PressureModel
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
+from beadsight.data.windows import WindowReader
 from beadsight.evaluation.config import DEFAULT_DEVICE, DEFAULT_SPLIT
 from beadsight.evaluation.config import EVALUATE_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.evaluation.metrics import PAPER_METRICS, FrameMetrics, MetricsAccumulator
@@ -52,6 +57,7 @@ from beadsight.evaluation.plots import (
 )
 from beadsight.evaluation.predict import IncrementalH5, as_model
 from beadsight.evaluation.report import REPORT_FILE, evaluation_report, write_report
+from beadsight.evaluation.rest_images import REST_FROM_DATASET, REST_NONE
 from beadsight.evaluation.selection import (
     SPLIT_CHOICES,
     EvaluationError,
@@ -71,11 +77,9 @@ __all__ = [
     "SPLIT_CHOICES",
     "EvaluationError",
     "SplitSelection",
-    "WindowReader",
     "evaluate",
     "evaluation_frames",
     "evaluation_geometry",
-    "read_windows",
     "select_split",
     "subsample",
     "write_metrics_json",
@@ -102,59 +106,7 @@ DEFINITIONS = {
 }
 
 
-# --- reading ------------------------------------------------------------------------
-class WindowReader:
-    """Reads frame windows for batches of end frames in increasing order.
-
-    The frames a batch shares with the previous one (the last ``span - 1``) are
-    reused instead of read again; each contiguous run of the rest is read once.
-    """
-
-    def __init__(self, ds: Dataset, span: int, image_size: int | None = None):
-        self.ds = ds
-        self.span = span
-        self.image_size = image_size or ds.image_size  # frames are resized to this (INTER_AREA)
-        self._offsets = np.arange(span - 1, -1, -1, dtype=np.int64)
-        self._index = np.zeros(0, dtype=np.int64)  # sorted frame indices held in _frames
-        self._frames = np.zeros((0, self.image_size, self.image_size, 3), dtype=np.uint8)
-
-    def _read(self, start: int, stop: int) -> np.ndarray:
-        frames = self.ds.read_frames(start, stop)
-        if self.image_size == self.ds.image_size:
-            return frames
-        from beadsight.train.windows import resize_frames
-
-        return resize_frames(frames, self.image_size)
-
-    def __call__(self, ends: np.ndarray) -> np.ndarray:
-        """(B,) end indices -> (B, span, S, S, 3) uint8 RGB windows, oldest frame first.
-
-        S is ``image_size``."""
-        ends = np.asarray(ends, dtype=np.int64)
-        wanted = ends[:, None] - self._offsets[None]  # (B, T)
-        need = np.unique(wanted)
-        if need.size and (need[0] < 0 or need[-1] >= len(self.ds)):
-            raise IndexError(
-                f"windows need frames {need[0]}..{need[-1]}; {self.ds.path} has {len(self.ds)}"
-            )
-        block = np.empty((need.size, *self._frames.shape[1:]), dtype=np.uint8)
-        have = np.isin(need, self._index)
-        block[have] = self._frames[np.searchsorted(self._index, need[have])]
-        missing = need[~have]
-        if missing.size:
-            runs = np.split(missing, np.flatnonzero(np.diff(missing) != 1) + 1)
-            block[~have] = np.concatenate([self._read(int(r[0]), int(r[-1]) + 1) for r in runs])
-        keep = max(need.size - (self.span - 1), 0)
-        self._index, self._frames = need[keep:], block[keep:].copy()
-        return block[np.searchsorted(need, wanted)]
-
-
-def read_windows(ds: Dataset, ends: np.ndarray, span: int) -> np.ndarray:
-    """Frame windows ending at ``ends``: (B,) indices -> (B, span, S, S, 3) uint8 RGB, oldest
-    first."""
-    return WindowReader(ds, span)(ends)
-
-
+# --- geometry -----------------------------------------------------------------------
 def evaluation_geometry(model: PressureModel, ds: Dataset, resize: bool = False) -> SensorGeometry:
     """The geometry of the evaluated maps: the dataset's, at the model's image size.
 
@@ -297,7 +249,7 @@ def evaluate(
         else:
             selection = given_presses(ds, presses, train_presses)
         ends = evaluation_frames(model, ds, selection, max_frames)
-        covered = coverage(ds, selection, model.span, ends.size)
+        covered = coverage(ds, selection, model.span, ends.size, rest=bool(model.rest))
         log.info(
             "evaluating %s on %d frames of %d presses (%s split, %s) of %s: coverage %.1f%% "
             "of the split's %d valid frames (%.1f%% have a full window%s)",
@@ -342,7 +294,7 @@ class _Run:
     def baseline_maps(self, selection: SplitSelection, ends: np.ndarray) -> dict[str, np.ndarray]:
         """The constant maps scored as baselines: all-zero and the mean training label."""
         ds, s = self.ds, self.geometry.image_size_px
-        train_ends = selection_ends(ds, selection, self.model.span, train=True)
+        train_ends = selection_ends(ds, selection, self.model.span, True, bool(self.model.rest))
         source = train_ends if train_ends.size else ends
         return {
             "zero": np.zeros((s, s), np.float32),
@@ -362,7 +314,7 @@ class _Run:
         accs = {name: MetricsAccumulator(self.geometry) for name in ("model", *base_maps)}
         examples = _example_frames(ds, ends, EXAMPLE_PRESSES)
         col = _Collected(examples, ds.press_id[examples[:TRACE_PRESSES]], {}, [])
-        reader = WindowReader(ds, model.span, self.geometry.image_size_px)
+        reader = WindowReader(ds, model.span, self.geometry.image_size_px, bool(model.rest))
         with ExitStack() as stack:
             writer = None
             if out is not None:
@@ -441,6 +393,7 @@ def _prediction_attrs(
         "dataset": str(ds.path),
         "split": selection.name,
         "geometry": geometry.to_json(),
+        "rest_source": REST_FROM_DATASET if model.rest else REST_NONE,
         "units": json.dumps(
             {
                 "pred_kpa": "kPa",

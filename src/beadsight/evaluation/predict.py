@@ -22,11 +22,25 @@ dataset            shape        dtype    content
                                          times (s from the start of the video)
 ``frame_index``    (N,)         int64    index of the frame in the input
 ``valid``          (N,)         bool     False for the first span-1 frames (no full window)
+                                         and, for a rest-referenced model, for frames
+                                         without a rest image
 =================  ===========  =======  ===============================================
 
 Attributes include ``frames`` (T, the frames the network sees) and ``span`` (the
 frames one window covers); files of format version 1 have ``window`` (the span)
-instead of both.
+instead of both. ``rest_source`` says where a rest-referenced model's rest image came
+from (``rest_note`` in words):
+
+* ``"file"``: ``--rest FILE``
+  (:func:`~beadsight.evaluation.rest_images.read_rest_file`; ``rest_file`` names it),
+  for every frame;
+* ``"stream_start"`` (videos without ``--rest``): the average of the input's first
+  :data:`~beadsight.data.rest.REST_FRAMES` frames, taken as the unloaded, still pouch;
+  the frames before its last one have no prediction;
+* ``"dataset"`` (datasets without ``--rest``): each frame's own rest image by the rule of
+  training and evaluation (:mod:`beadsight.data.rest`); frames with no unloaded, settled
+  run before them have no prediction;
+* ``"none"``: the model has no rest input.
 """
 
 from __future__ import annotations
@@ -50,6 +64,7 @@ from beadsight.errors import BeadSightError
 from beadsight.evaluation.config import DEFAULT_DEVICE, PREDICT_PREPROCESS
 from beadsight.evaluation.config import PREDICT_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.evaluation.h5writer import IncrementalH5
+from beadsight.evaluation.rest_images import REST_NONE, FileRest, StreamRest, stream_rest
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
 from beadsight.inference.frames import check_preprocess, input_converter
 from beadsight.preprocess import FrameSizeError
@@ -182,6 +197,7 @@ class _VideoSource(_Source):
         except FrameSizeError as e:
             self.cap.release()
             raise PredictionError(f"{e} (checkpoint {model.source})") from None
+
     def _frame(self, bgr: np.ndarray, index: int) -> np.ndarray:
         if bgr.shape != self._first.shape:
             raise PredictionError(
@@ -256,6 +272,7 @@ def predict_recording(
     batch_size: int = DEFAULT_BATCH_SIZE,
     device: str | torch.device = DEFAULT_DEVICE,
     progress: bool = True,
+    rest: str | Path | None = None,
 ) -> Path:
     """Predict a pressure map for every frame of a dataset or video; write ``out`` (HDF5).
 
@@ -266,6 +283,9 @@ def predict_recording(
     raw 1280x1024 camera frames through the reference pipeline, other sizes refused;
     "none", "reference", "reference-linear", or a fisheye calibration .json). Dataset
     frames are already preprocessed ("auto" or "none").
+    rest: for a rest-referenced model, a rest file
+    (:func:`~beadsight.evaluation.rest_images.read_rest_file`); without it
+    the rest image comes from the input (``rest_source`` in this module's docstring).
     Returns the output path; the layout is in this module's docstring.
     """
     if batch_size < 1:
@@ -278,15 +298,23 @@ def predict_recording(
     model = as_model(checkpoint, device)
     source = _open_source(input, model, preprocess)
     s, t = model.image_size, model.span
+    valid = 0
     try:
+        if rest is not None and not model.rest:
+            raise PredictionError(
+                f"--rest {rest}: the checkpoint {model.source} is not rest-referenced (it "
+                "takes no rest image); leave --rest out"
+            )
+        ds = source.ds if isinstance(source, _DatasetSource) else None
+        rests = stream_rest(model, ds, rest) if model.rest else None
         with IncrementalH5(out, _output_specs(s)) as writer:
-            writer.file.attrs.update(_attrs(model, input, source))
+            writer.file.attrs.update(_attrs(model, input, source, rests))
             ring = WindowBuffer(t)
             with tqdm(
                 total=source.total, unit="frame", desc="predict", disable=not progress
             ) as bar:
                 for chunk in source.chunks(max(batch_size, READ_CHUNK_FRAMES)):
-                    _predict_chunk(model, ring, chunk, writer, batch_size)
+                    valid += _predict_chunk(model, ring, rests, chunk, writer, batch_size)
                     bar.update(len(chunk.frames))
             if writer.rows < t:
                 log.warning(
@@ -295,6 +323,8 @@ def predict_recording(
                     writer.rows,
                     t,
                 )
+            elif valid == 0:
+                log.warning("%s: no frame has a rest image (%s)", input, rests.note)
     finally:
         source.close()
     log.info("wrote %s (%d frames)", out, writer.rows)
@@ -302,20 +332,32 @@ def predict_recording(
 
 
 def _predict_chunk(
-    model: PressureModel, ring: WindowBuffer, chunk: _Chunk, writer: IncrementalH5, batch_size: int
-) -> None:
+    model: PressureModel,
+    ring: WindowBuffer,
+    rests: StreamRest | None,
+    chunk: _Chunk,
+    writer: IncrementalH5,
+    batch_size: int,
+) -> int:
+    """Predict and append one chunk; returns how many of its frames have a prediction."""
     n, s = len(chunk.frames), model.image_size
     if chunk.frames.shape[1:] != (s, s, 3):
         raise PredictionError(
             f"frames are {chunk.frames.shape[1:3]} px after preprocessing; the checkpoint "
             f"{model.source} expects image_size={s}x{s}"
         )
-    windows, first = ring.push(chunk.frames)
-    maps = np.zeros((n, s, s), np.float32)
-    if len(windows):
-        maps[first:] = model.predict(windows, batch_size=batch_size)
-    valid = np.arange(n) >= first
     start = writer.rows
+    windows, first = ring.push(chunk.frames)  # windows end at frames first .. n-1
+    valid = np.arange(n) >= first
+    inputs = windows
+    if rests is not None:
+        images, has = rests(chunk.frames, start)
+        valid &= has
+        keep = has[first:]
+        inputs = np.concatenate([images[first:][keep][:, None], windows[keep]], axis=1)
+    maps = np.zeros((n, s, s), np.float32)
+    if len(inputs):
+        maps[valid] = model.predict(inputs, batch_size=batch_size)
     writer.append(
         pressure_kpa=maps,
         timestamp_s=chunk.timestamp_s,
@@ -323,10 +365,15 @@ def _predict_chunk(
         valid=valid,
         **_summaries(maps, model),
     )
+    return int(valid.sum())
 
 
-def _attrs(model: PressureModel, input: Path, source: _Source) -> dict:
+def _attrs(model: PressureModel, input: Path, source: _Source, rests: StreamRest | None) -> dict:
+    extra = {"rest_file": str(rests.path)} if isinstance(rests, FileRest) else {}
     return {
+        **extra,
+        "rest_source": REST_NONE if rests is None else rests.source,
+        "rest_note": "" if rests is None else rests.note,
         "format": PREDICTIONS_FORMAT,
         "format_version": PREDICTIONS_FORMAT_VERSION,
         "checkpoint": str(model.source),
@@ -358,9 +405,11 @@ def summarize_predictions(path: str | Path) -> str:
     with h5py.File(path, "r") as f:
         valid = f["valid"][()]
         force = f["force_n"][()]
+        rest_source = str(f.attrs.get("rest_source", REST_NONE))
+        rest = "" if rest_source == REST_NONE else f" and a rest image: {rest_source}"
         peak = float(force[valid].max()) if valid.any() else float("nan")
         return (
-            f"wrote {path}: {len(valid)} frames ({int(valid.sum())} with a full window), "
-            f"peak force {peak:.2f} N, from {f.attrs['input_kind']} {f.attrs['input']} "
-            f"(preprocess: {f.attrs['preprocess']})"
+            f"wrote {path}: {len(valid)} frames ({int(valid.sum())} with a full window"
+            f"{rest}), peak force {peak:.2f} N, from {f.attrs['input_kind']} "
+            f"{f.attrs['input']} (preprocess: {f.attrs['preprocess']})"
         )

@@ -15,8 +15,10 @@
 
 The evaluated frames are those of the split with a full window of valid,
 continuous history (:func:`beadsight.data.splits.dataset_window_ends`), also when
-the window reaches into the previous press. ``coverage`` is their share of the
-split's valid frames.
+the window reaches into the previous press; for a rest-referenced model also a rest
+image before them (:func:`beadsight.data.rest.rest_ends`), as in training. ``coverage``
+is their share of the split's valid frames: frames without a rest image count as not
+covered.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import numpy as np
 
 from beadsight.checkpoint import PressureModel
 from beadsight.data.dataset import Dataset
+from beadsight.data.rest import REST_SETTLE_FRAMES
 from beadsight.data.splits import (
     DEFAULT_FRACTIONS,
     SPLITS,
@@ -239,12 +242,17 @@ def evaluation_frames(
             f"{ds.path}: the {selection.name!r} split has no presses ({ds.num_presses} in the "
             "dataset); use --split all"
         )
-    ends = selection_ends(ds, selection, model.span, train=False)
+    ends = selection_ends(ds, selection, model.span, train=False, rest=bool(model.rest))
     if ends.size == 0:
+        rest = (
+            f" and a rest image before them (a run of {REST_SETTLE_FRAMES} valid unloaded frames)"
+            if model.rest
+            else ""
+        )
         raise EvaluationError(
             f"window mismatch: the checkpoint {model.source} needs {model.span} "
-            f"consecutive valid frames of history, but no frame of the {selection.name!r} split "
-            f"of {ds.path} has them (longest run of valid frames: "
+            f"consecutive valid frames of history{rest}, but no frame of the {selection.name!r} "
+            f"split of {ds.path} has them (longest run of valid frames: "
             f"{_longest_valid_run(ds)})"
         )
     if max_frames is not None and ends.size > max_frames:
@@ -252,24 +260,30 @@ def evaluation_frames(
     return ends
 
 
-def selection_ends(ds: Dataset, selection: SplitSelection, span: int, train: bool) -> np.ndarray:
-    """The window-end frames of the split (``train``: of its training part)."""
+def selection_ends(
+    ds: Dataset, selection: SplitSelection, span: int, train: bool, rest: bool = False
+) -> np.ndarray:
+    """The window-end frames of the split (``train``: of its training part); ``rest``: only
+    those with a rest image before them (a rest-referenced model's)."""
     frames = selection.train_frames if train else selection.frames
     ids = selection.train_ids if train else selection.press_ids
     if frames is None:
-        return dataset_window_ends(ds, span, ids)
-    return np.intersect1d(frames, dataset_window_ends(ds, span)).astype(np.int64)
+        return dataset_window_ends(ds, span, ids, rest=rest)
+    return np.intersect1d(frames, dataset_window_ends(ds, span, rest=rest)).astype(np.int64)
 
 
-def coverage(ds: Dataset, selection: SplitSelection, span: int, evaluated: int) -> dict:
+def coverage(
+    ds: Dataset, selection: SplitSelection, span: int, evaluated: int, rest: bool = False
+) -> dict:
     """``coverage``: frames evaluated / valid frames of the split; ``window_coverage``:
-    frames with a full window of real history / valid frames (the same unless
-    ``--max-frames`` took an even sample of them); and ``valid_frames``."""
+    frames with a full window of real history (and, with ``rest``, a rest image before
+    them) / valid frames (the same unless ``--max-frames`` took an even sample of them);
+    and ``valid_frames``."""
     if selection.frames is not None:
         candidates = int(ds.valid[selection.frames].sum())
     else:
         candidates = int(valid_frames(ds, selection.press_ids).size)
-    windowed = int(selection_ends(ds, selection, span, train=False).size)
+    windowed = int(selection_ends(ds, selection, span, train=False, rest=rest).size)
     return {
         "coverage": evaluated / candidates if candidates else 0.0,
         "window_coverage": windowed / candidates if candidates else 0.0,

@@ -4,8 +4,10 @@
   channel mean and std, 0..255) become those of the new sensor's rest frames - a few
   seconds of the untouched sensor, or the approach frames before each press makes
   contact (:func:`pre_contact_mask`). This matches the brightness, contrast and colour
-  balance of the new camera and lights to what the network saw in training. The
-  network has no rest-image input, so a per-pixel rest reference cannot be swapped in.
+  balance of the new camera and lights to what the network saw in training. A model
+  without rest input cannot take a per-pixel rest reference; a rest-referenced one gets
+  each window's own rest image from the data, as in training and evaluation
+  (:mod:`beadsight.data.windows`), and is aligned as well.
 * **Force gain** (:func:`fit_force_gain`): one factor on the output scale, the least
   squares fit of the predicted to the measured total force on training frames in
   contact (a pouch stiffer or softer than the base model's).
@@ -21,7 +23,7 @@ import numpy as np
 from beadsight.checkpoint import PressureModel
 from beadsight.data.dataset import Dataset, DatasetError, open_dataset
 from beadsight.data.splits import dataset_window_ends
-from beadsight.evaluation.evaluate import WindowReader
+from beadsight.data.windows import WindowReader
 from beadsight.geometry import total_force_n
 from beadsight.train.windows import pixel_stats
 
@@ -99,16 +101,18 @@ def align_to_rest(
 
 def fit_force_gain(model: PressureModel, data: str, train_ids: np.ndarray) -> float:
     """The factor g minimising sum (g * F_pred - F_true)^2 over (up to GAIN_MAX_FRAMES,
-    evenly spaced) training frames in contact; F = total force of the map, N."""
+    evenly spaced) training frames in contact; F = total force of the map, N. A
+    rest-referenced model's frames are those with a rest image before them."""
+    rest = bool(model.rest)
     with open_dataset(data) as ds:
-        ends = dataset_window_ends(ds, model.span, train_ids)
+        ends = dataset_window_ends(ds, model.span, train_ids, rest=rest)
         ends = ends[ds.contact[ends]]
         if ends.size == 0:
             raise DatasetError(f"{ds.path}: no training frame in contact to fit a force gain on")
         ends = ends[
             np.unique(np.linspace(0, ends.size - 1, min(ends.size, GAIN_MAX_FRAMES)).astype(int))
         ]
-        reader = WindowReader(ds, model.span, model.image_size)
+        reader = WindowReader(ds, model.span, model.image_size, rest)
         geometry = ds.geometry.with_image_size(model.image_size)
         pred = np.concatenate(
             [

@@ -95,7 +95,7 @@ def train_config(config: CalibrateConfig, base: PressureModel, base_path: Path) 
     return TrainConfig(
         data=config.data, out=str(Path(config.out) / TRAIN_FOLDER), init=str(base_path),
         frames=m.frames, frame_stride=m.frame_stride, width=m.width, up_kernel=m.up_kernel,
-        dropout=m.dropout, image_size=base.image_size, epochs=RUN_EPOCHS,
+        dropout=m.dropout, rest_input=m.rest_input, image_size=base.image_size, epochs=RUN_EPOCHS,
         budget_min=config.budget_min, val_every_min=config.val_every_min,
         lr=config.lr, lr_min=config.lr_min, lr_schedule="cosine", batch_size=config.batch_size,
         noise_std=config.noise_std, augment=config.augment, split=CALIBRATION_SPLIT,
@@ -131,7 +131,7 @@ def check_data(config: CalibrateConfig, base: PressureModel, tc: TrainConfig) ->
                 f"{base.image_size} px); process the recording with --image-size {base.image_size}"
             )
         split = split_used_presses(tc, ds)
-        val_windows = dataset_window_ends(ds, tc.span, split["val"]).size
+        val_windows = dataset_window_ends(ds, tc.span, split["val"], rest=tc.rest_input).size
         return {
             "split": split,
             "val_stride": max(1, math.ceil(val_windows / VAL_MAX_WINDOWS)),

@@ -11,7 +11,8 @@ Two ways to feed a training loop, with the same batches:
 
 * **host** (:class:`WindowDataset` + a ``torch.utils.data.DataLoader`` with workers):
   each window is one contiguous slice read from the HDF5 file, resized on the fly
-  (``cv2.INTER_AREA``) when training at a reduced image size.
+  (``cv2.INTER_AREA``) when training at a reduced image size, by
+  :func:`beadsight.data.windows.read_window`, the builder evaluation uses too.
 * **device** (:class:`DeviceWindows`): every frame any window needs is loaded once
   into one uint8 tensor on the training device (GPU memory or RAM); a batch is
   gathered by index arithmetic and labelled on the device, with no per-sample
@@ -41,7 +42,8 @@ from tqdm import tqdm
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
-from beadsight.data.rest import REST_FRAMES, average_rest, rest_ends, rest_frame_mask, with_rest
+from beadsight.data.rest import REST_FRAMES, rest_ends, rest_frame_mask
+from beadsight.data.windows import read_window, resize_frames
 from beadsight.train.augment import D4_ORDER, d4_batch, index_on
 from beadsight.train.config import LOADER_MODES
 
@@ -58,16 +60,6 @@ FINGERPRINT_SAMPLE_FRAMES = 4  # frames hashed (besides all labels) in a dataset
 
 
 # --- frames --------------------------------------------------------------------------
-def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
-    """(n, S, S, 3) uint8 -> (n, size, size, 3) uint8 by area averaging (cv2.INTER_AREA)."""
-    if frames.shape[1] == size and frames.shape[2] == size:
-        return frames
-    out = np.empty((len(frames), size, size, 3), dtype=np.uint8)
-    for i, frame in enumerate(frames):
-        out[i] = cv2.resize(frame, (size, size), interpolation=cv2.INTER_AREA)
-    return out
-
-
 def window_frame_mask(ends: np.ndarray, span: int, num_frames: int) -> np.ndarray:
     """(N,) bool: frames that belong to at least one window (of ``span`` frames) ending at
     ``ends``."""
@@ -205,15 +197,9 @@ class WindowDataset(torch.utils.data.Dataset):
 
     def read(self, i: int) -> np.ndarray:
         """(inputs, S, S, 3) uint8 RGB images of window ``i`` (rest image first, if any)."""
-        end, size = int(self.labels.ends[i]), self.labels.geometry.image_size_px
-        window = resize_frames(self._dataset().read_frames(end - self.span + 1, end + 1), size)
-        if self.labels.rests is None:
-            return window
-        r = int(self.labels.rests[i])
-        rest = average_rest(
-            resize_frames(self._dataset().read_frames(r - REST_FRAMES + 1, r + 1), size)
-        )
-        return with_rest(rest, window)
+        rest = None if self.labels.rests is None else int(self.labels.rests[i])
+        size = self.labels.geometry.image_size_px
+        return read_window(self._dataset(), int(self.labels.ends[i]), self.span, size, rest)
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         target = self.labels.maps(np.array([i]))[0]

@@ -1,0 +1,151 @@
+"""Model inputs read from a dataset: the window of ``span`` frames ending at a frame, oldest
+first, and for a rest-referenced model its rest image in front (``(inputs, S, S, 3)``).
+
+The one builder of dataset inputs: training reads through it (host mode:
+:func:`read_window`; the device mode gathers the same frames on the device and averages
+them the same way) and so do evaluation, calibration and ``predict`` on a dataset
+(:class:`WindowReader`, :class:`RestImages`). Frames are resized to the model's size by
+area averaging (``cv2.INTER_AREA``) before anything else, so a rest image is the average
+(:func:`~beadsight.data.rest.average_rest`) of its :data:`~beadsight.data.rest.REST_FRAMES`
+resized frames, the last of them given by :func:`~beadsight.data.rest.rest_ends`.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from beadsight.data.rest import (
+    REST_FRAMES,
+    REST_MAX_FORCE_N,
+    REST_SETTLE_FRAMES,
+    average_rest,
+    rest_ends,
+    with_rest,
+)
+
+if TYPE_CHECKING:
+    from beadsight.data.dataset import Dataset
+
+
+def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
+    """(n, S, S, 3) uint8 -> (n, size, size, 3) uint8 by area averaging (cv2.INTER_AREA)."""
+    if frames.shape[1] == size and frames.shape[2] == size:
+        return frames
+    out = np.empty((len(frames), size, size, 3), dtype=np.uint8)
+    for i, frame in enumerate(frames):
+        out[i] = cv2.resize(frame, (size, size), interpolation=cv2.INTER_AREA)
+    return out
+
+
+def rest_image(ds: Dataset, rest_end: int, image_size: int) -> np.ndarray:
+    """(image_size, image_size, 3) uint8 RGB: the rest image whose last frame is ``rest_end``
+    (the average of the :data:`REST_FRAMES` frames ending there, each resized first)."""
+    frames = ds.read_frames(rest_end - REST_FRAMES + 1, rest_end + 1)
+    return average_rest(resize_frames(frames, image_size))
+
+
+def read_window(
+    ds: Dataset, end: int, span: int, image_size: int, rest_end: int | None = None
+) -> np.ndarray:
+    """The input ending at frame ``end``: (span, S, S, 3) uint8 RGB frames oldest first, or
+    with ``rest_end`` (the last frame of its rest image) (1 + span, S, S, 3), the rest image
+    first. S is ``image_size``. One contiguous read: for random access (training)."""
+    window = resize_frames(ds.read_frames(end - span + 1, end + 1), image_size)
+    if rest_end is None:
+        return window
+    return with_rest(rest_image(ds, rest_end, image_size), window)
+
+
+class RestImages:
+    """The rest image of each frame of a dataset, by :func:`rest_ends` (the newest run of
+    :data:`REST_SETTLE_FRAMES` valid unloaded frames at or before it), at ``image_size``.
+
+    Neighbouring frames share a rest image: those of the last call are kept, not read again.
+    """
+
+    def __init__(self, ds: Dataset, image_size: int | None = None):
+        self.ds = ds
+        self.image_size = image_size or ds.image_size
+        self.ends = rest_ends(ds.force_n, ds.valid)  # (N,) int64, -1: no rest image
+        self._kept: dict[int, np.ndarray] = {}
+
+    def has_rest(self, frames: np.ndarray) -> np.ndarray:
+        """(B,) frame indices -> (B,) bool: the frame has a rest image before it."""
+        return self.ends[np.asarray(frames, dtype=np.int64)] >= 0
+
+    def __call__(self, frames: np.ndarray) -> np.ndarray:
+        """(B,) frame indices -> (B, S, S, 3) uint8 RGB rest images. ValueError naming the
+        first frame that has none."""
+        frames = np.asarray(frames, dtype=np.int64)
+        ends = self.ends[frames]
+        if (ends < 0).any():
+            raise ValueError(
+                f"{self.ds.path}: frame {int(frames[np.argmax(ends < 0)])} has no rest image "
+                f"before it (a run of {REST_SETTLE_FRAMES} valid frames at most "
+                f"{REST_MAX_FORCE_N:.3f} N)"
+            )
+        kept = {}
+        for r in np.unique(ends).tolist():
+            image = self._kept.get(r)
+            kept[r] = rest_image(self.ds, r, self.image_size) if image is None else image
+        self._kept = kept
+        out = np.empty((len(frames), self.image_size, self.image_size, 3), dtype=np.uint8)
+        for k, r in enumerate(ends.tolist()):
+            out[k] = kept[r]
+        return out
+
+
+class WindowReader:
+    """Reads model inputs for batches of end frames in increasing order.
+
+    ``reader(ends)``: (B,) end indices -> (B, inputs, S, S, 3) uint8 RGB: with ``rest`` the
+    rest image first (:class:`RestImages`), then the ``span`` frames oldest first; S is
+    ``image_size`` (the dataset's if None; frames are resized with INTER_AREA). The frames
+    a batch shares with the previous one (the last ``span - 1``) are reused instead of read
+    again; each contiguous run of the rest is read once.
+    """
+
+    def __init__(self, ds: Dataset, span: int, image_size: int | None = None, rest: bool = False):
+        self.ds = ds
+        self.span = span
+        self.image_size = image_size or ds.image_size
+        self.rests = RestImages(ds, self.image_size) if rest else None
+        self._offsets = np.arange(span - 1, -1, -1, dtype=np.int64)
+        self._index = np.zeros(0, dtype=np.int64)  # sorted frame indices held in _frames
+        self._frames = np.zeros((0, self.image_size, self.image_size, 3), dtype=np.uint8)
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
+        return resize_frames(self.ds.read_frames(start, stop), self.image_size)
+
+    def __call__(self, ends: np.ndarray) -> np.ndarray:
+        ends = np.asarray(ends, dtype=np.int64)
+        wanted = ends[:, None] - self._offsets[None]  # (B, span)
+        need = np.unique(wanted)
+        if need.size and (need[0] < 0 or need[-1] >= len(self.ds)):
+            raise IndexError(
+                f"windows need frames {need[0]}..{need[-1]}; {self.ds.path} has {len(self.ds)}"
+            )
+        rest = None if self.rests is None else self.rests(ends)  # (B, S, S, 3)
+        block = np.empty((need.size, *self._frames.shape[1:]), dtype=np.uint8)
+        have = np.isin(need, self._index)
+        block[have] = self._frames[np.searchsorted(self._index, need[have])]
+        missing = need[~have]
+        if missing.size:
+            runs = np.split(missing, np.flatnonzero(np.diff(missing) != 1) + 1)
+            block[~have] = np.concatenate([self._read(int(r[0]), int(r[-1]) + 1) for r in runs])
+        keep = max(need.size - (self.span - 1), 0)
+        self._index, self._frames = need[keep:], block[keep:].copy()
+        windows = block[np.searchsorted(need, wanted)]  # (B, span, S, S, 3)
+        if rest is None:
+            return windows
+        return np.concatenate([rest[:, None], windows], axis=1)  # (B, 1 + span, S, S, 3)
+
+
+def read_windows(
+    ds: Dataset, ends: np.ndarray, span: int, image_size: int | None = None, rest: bool = False
+) -> np.ndarray:
+    """:class:`WindowReader` in one call: (B,) end indices -> (B, inputs, S, S, 3) uint8 RGB."""
+    return WindowReader(ds, span, image_size, rest)(ends)
