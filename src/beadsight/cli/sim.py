@@ -46,7 +46,7 @@ def register(commands) -> None:
 
 def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     from beadsight.cli.options import add_fields
-    from beadsight.sim.config import PRESS_PROFILES, SimConfig
+    from beadsight.sim.config import LOOK_SPLITS, PRESS_PROFILES, SimConfig
 
     p.add_argument("--out", required=True, help="output dataset .h5")
     p.add_argument("--presses", type=int, required=True, help="number of presses")
@@ -73,11 +73,9 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
         "this split of the range of real builds (docs/simulator.md); with --pouches N, "
         "a base-model training set (train) or builds no base model saw (heldout)",
     )
-    from beadsight.sim.looks import FAMILY_NAMES, LOOK_SPLITS
-
     p.add_argument(
         "--looks",
-        choices=(*LOOK_SPLITS, *FAMILY_NAMES),
+        choices=(*LOOK_SPLITS, *(f for families in LOOK_SPLITS.values() for f in families)),
         default=None,
         help="give every pouch a look (beads, background, light, camera) drawn from a "
         "family of this split, or this one family (docs/simulator.md); 'heldout' families "

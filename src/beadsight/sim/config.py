@@ -30,6 +30,12 @@ PRESET_BEAD_COUNTS = (75, 100, 125)  # pouch variants of the published sensor
 # How a session's drawn presses move (beadsight.sim.press.draw_profile): the reference
 # pattern, or a mix with long holds, slow ramps and depth changes while held.
 PRESS_PROFILES = ("reference", "mixed")
+# Look families of the simulator (beadsight.sim.looks) by split; "heldout" families are the
+# foreign-look benchmark, never trained on. Here, without numpy, for the CLI's --help.
+LOOK_SPLITS: dict[str, tuple[str, ...]] = {
+    "train": ("coloured", "clear", "mono", "vivid", "milky"),
+    "heldout": ("clear_print", "grey_ring"),
+}
 WARM_WHITE_RGB = (1.0, 0.97, 0.92)  # colour of the reference build's LEDs (linear RGB)
 COVER_TINT_RGB = (0.92, 0.97, 1.0)  # water over the black vinyl cover: slightly cool
 BACKGROUND_PATTERNS = ("mottle", "dots", "grid", "stripes", "speckle")  # background prints

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from beadsight.errors import ConfigError
-from beadsight.sim.config import SimConfig
+from beadsight.sim.config import LOOK_SPLITS, SimConfig
 
 PARAM_DRAWS = 32  # uniforms drawn for a family's parameters (the same for every family)
 TINT_DRAWS = 12  # uniforms drawn for its bead tints
@@ -341,10 +341,6 @@ FAMILIES: dict[str, LookFamily] = {
     )
 }
 FAMILY_NAMES = tuple(FAMILIES)
-LOOK_SPLITS: dict[str, tuple[str, ...]] = {
-    "train": ("coloured", "clear", "mono", "vivid", "milky"),
-    "heldout": ("clear_print", "grey_ring"),
-}
 
 
 def resolve_looks(looks: str) -> tuple[str, ...]:
