@@ -13,8 +13,8 @@ from __future__ import annotations
 import argparse
 import time
 
+from beadsight.health.checkup import drift_timeline
 from beadsight.inference.machine import cpu_summary
-from beadsight.live.checkup import drift_timeline
 
 KINDS_STATES = ("ok", "drifting", "recalibrate")
 KINDS = ("none", "settle", "light", "bump", "bump,bump_mm=2")

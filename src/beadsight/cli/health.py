@@ -51,7 +51,7 @@ def run_health_command(args: argparse.Namespace) -> int:
     do. --save-rest stores the rest reference for beadsight live --rest.
     """
     from beadsight.cli.options import given
-    from beadsight.live.checkup import run_checkup
+    from beadsight.health.checkup import run_checkup
     from beadsight.live.sensor import LiveSensor
     from beadsight.live.settings import LiveSettings
 

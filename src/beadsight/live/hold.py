@@ -7,7 +7,7 @@ force fades to zero within about two seconds (the shipped sim model: 7 N to 0 N 
 hold never lets a still load fade:
 
 * while the frames move, readings pass unchanged;
-* when the frames become still (:class:`~beadsight.live.stillness.StillnessDetector`)
+* when the frames become still (:class:`~beadsight.health.stillness.StillnessDetector`)
   while the sensor is in contact (a contact reading within the last
   :data:`CONTACT_MEMORY_FRAMES` frames), the newest contact reading is *held*: it is
   published again, with each new frame's time, as long as the frames stay within
@@ -27,8 +27,8 @@ from collections import deque
 
 import numpy as np
 
+from beadsight.health.stillness import change
 from beadsight.inference.predictor import PressureReading
-from beadsight.live.stillness import change
 
 CONTACT_MEMORY_FRAMES = 15  # a contact reading this recent still counts as contact
 RELEASE_CHANGE = 5.0  # frames this far from the hold's start (mean block change) end it

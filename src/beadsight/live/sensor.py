@@ -56,8 +56,10 @@ from beadsight.devices.base import (
     Frame,
 )
 from beadsight.errors import BeadSightError
+from beadsight.health.monitor import HealthReport
+from beadsight.health.rest import load_rest
+from beadsight.health.watch import SensorWatch
 from beadsight.inference.predictor import PressurePredictor, PressureReading
-from beadsight.live.health import HealthReport
 from beadsight.live.listeners import (
     READING_QUEUE_SIZE,
     CallbackListener,
@@ -67,14 +69,12 @@ from beadsight.live.listeners import (
     UpdateQueue,
 )
 from beadsight.live.recorder import RecordingSlot
-from beadsight.live.rest import load_rest
 from beadsight.live.settings import LiveSettings
 from beadsight.live.sources import (
     frame_converter,
     open_camera,
 )
 from beadsight.live.stats import LiveStats, RateMeter
-from beadsight.live.watch import SensorWatch
 
 logger = logging.getLogger(__name__)
 

@@ -1,9 +1,9 @@
 """Sensor health: how far the sensor at rest has drifted from its rest reference.
 
 Beads settle, LEDs age, the camera gets knocked, the model's zero creeps. Whenever the
-pouch is at rest (no contact, still frames, no held load: :mod:`beadsight.live.watch`),
+pouch is at rest (no contact, still frames, no held load: :mod:`beadsight.health.watch`),
 :class:`HealthMonitor` averages :attr:`HealthSettings.rest_frames` rest frames and
-compares them with the :class:`~beadsight.live.rest.RestReference` (from calibration,
+compares them with the :class:`~beadsight.health.rest.RestReference` (from calibration,
 or taken automatically the first time the pouch is certainly unloaded):
 
 =======================  =====================================================  =============
@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from beadsight.config import ConfigError
-from beadsight.live.rest import REST_PX, RestAverage, RestReference
+from beadsight.health.rest import REST_PX, RestAverage, RestReference
 
 logger = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 :func:`run_checkup` runs a :class:`~beadsight.live.sensor.LiveSensor` for ``seconds``
 (the pouch should be unloaded), then returns the newest
-:class:`~beadsight.live.health.HealthReport` and, if asked, saves the rest reference
+:class:`~beadsight.health.monitor.HealthReport` and, if asked, saves the rest reference
 the sensor took (or was given) for later runs (``beadsight live --rest FILE``).
 """
 
@@ -59,8 +59,8 @@ def drift_timeline(
 
     import numpy as np
 
+    from beadsight.health.watch import SensorWatch
     from beadsight.inference.predictor import PressureReading
-    from beadsight.live.watch import SensorWatch
     from beadsight.sim.config import SimConfig
     from beadsight.sim.drift import DriftRenderer, parse_drift
     from beadsight.sim.press import Press

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from beadsight.errors import BeadSightError
-from beadsight.live.checkup import drift_timeline
-from beadsight.live.health import HealthMonitor, HealthSettings, judge
-from beadsight.live.rest import REST_PX, RestAverage, load_rest
+from beadsight.health.checkup import drift_timeline
+from beadsight.health.monitor import HealthMonitor, HealthSettings, judge
+from beadsight.health.rest import REST_PX, RestAverage, load_rest
 from beadsight.sim.config import SimConfig
 from beadsight.sim.press import Press
 from beadsight.sim.session import SimulatedSession

@@ -2,8 +2,8 @@
 
 :class:`SensorWatch` takes each model-input frame and its reading, and returns the reading
 to publish (the :class:`~beadsight.live.hold.SteadyHold` may hold a still load) with the
-newest :class:`~beadsight.live.health.HealthReport`. A frame is a *rest* frame (for
-the :class:`~beadsight.live.health.HealthMonitor`) when the frames are still, the model
+newest :class:`~beadsight.health.monitor.HealthReport`. A frame is a *rest* frame (for
+the :class:`~beadsight.health.monitor.HealthMonitor`) when the frames are still, the model
 sees no contact and no load is held or was just seen; the monitor takes its automatic
 reference only from rest frames whose force is also about zero. Per frame this costs a
 16x16 thumbnail; the health figures run on rest frames, rate-limited.
@@ -15,11 +15,11 @@ from typing import Any
 
 import numpy as np
 
+from beadsight.health.monitor import HealthMonitor, HealthReport, HealthSettings
+from beadsight.health.rest import RestReference
+from beadsight.health.stillness import StillnessDetector, thumbnail
 from beadsight.inference.predictor import PressureReading
-from beadsight.live.health import HealthMonitor, HealthReport, HealthSettings
 from beadsight.live.hold import SteadyHold
-from beadsight.live.rest import RestReference
-from beadsight.live.stillness import StillnessDetector, thumbnail
 
 
 class SensorWatch:
