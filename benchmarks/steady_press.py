@@ -2,8 +2,7 @@
 
     .venv/bin/python benchmarks/steady_press.py [--hold-s 60] [--checkpoint C] [--drift SPEC]
 
-Runs LiveSensor on the simulator's steady press (beadsight.sim.scripted) with the
-steady-load hold (the default) and with the model alone, and prints the true force, the
+Runs LiveSensor on the simulator's steady press (beadsight.sim.scripted) and prints the true force, the
 published force at the start and end of the hold, the largest deviation in % (the issue's
 target: within 5 %) and the health state at the end.
 """
@@ -24,11 +23,10 @@ def main() -> None:
     p.add_argument("--drift", default=None, help="the simulator's drift, e.g. light")
     args = p.parse_args()
     print(cpu_summary())
-    for label, hold in (("with the hold", True), ("model alone", False)):
-        start = time.perf_counter()
-        result = run_steady_press(args.checkpoint, args.hold_s, hold=hold, drift=args.drift)
-        wall = time.perf_counter() - start
-        print(f"{label:14s} {result.summary()} ({wall:.1f} s wall)")
+    start = time.perf_counter()
+    result = run_steady_press(args.checkpoint, args.hold_s, drift=args.drift)
+    wall = time.perf_counter() - start
+    print(f"{result.summary()} ({wall:.1f} s wall)")
 
 
 if __name__ == "__main__":

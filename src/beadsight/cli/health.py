@@ -22,10 +22,6 @@ def drift_arguments(p: argparse.ArgumentParser) -> None:
         help="drift of the simulator source: settle, light, bump and field=value pairs, "
         "comma separated (e.g. bump,bump_at_s=9); see beadsight.sim.drift",
     )  # fmt: skip
-    p.add_argument(
-        "--no-hold", action="store_true",
-        help="do not hold the reading of a still load (the model alone lets it fade)",
-    )  # fmt: skip
 
 
 def _health_arguments(p: argparse.ArgumentParser) -> None:
@@ -58,7 +54,6 @@ def run_health_command(args: argparse.Namespace) -> int:
     settings = LiveSettings(
         rest_file=args.rest,
         sim_drift=args.sim_drift,
-        hold=not args.no_hold,
         **given(backend=args.backend, seed=args.seed),
     )
     sensor = LiveSensor(args.checkpoint, source=args.source, settings=settings)

@@ -76,7 +76,7 @@ def drift_timeline(
         if t > seconds:
             break
         zero = PressureReading(empty, 0.0, np.full(2, np.nan), False, empty > 0, 0.0, t, 0, 0, 0)
-        _, report = watch.process(render.apply(record.frame_rgb, t), zero)
+        report = watch.process(render.apply(record.frame_rgb, t), zero)
         first.setdefault(report.state, t)
     watch.close()
     return first

@@ -1,7 +1,7 @@
 """Sensor health: how far the sensor at rest has drifted from its rest reference.
 
 Beads settle, LEDs age, the camera gets knocked, the model's zero creeps. Whenever the
-pouch is at rest (no contact, still frames, no held load: :mod:`beadsight.health.watch`),
+pouch is at rest (no recent contact, still frames: :mod:`beadsight.health.watch`),
 :class:`HealthMonitor` averages :attr:`HealthSettings.rest_frames` rest frames and
 compares them with the :class:`~beadsight.health.rest.RestReference` (from calibration,
 or taken automatically the first time the pouch is certainly unloaded):

@@ -431,10 +431,7 @@ class LiveSensor:
         if reading is None:
             self._set_status("warming_up", f"filling the {self.model.span}-frame window")
             return
-        health = None
-        if self.watch is not None:
-            reading, report = self.watch.process(rgb, reading)
-            health = report if self.settings.health else None
+        health = self.watch.process(rgb, reading) if self.watch is not None else None
         latency = time.time() - frame.timestamp_s
         self._meter.add_reading(
             time.monotonic(), latency, reading.latency_s, reading.dropped_frames

@@ -44,7 +44,6 @@ class LiveSettings:
     reconnect_max_s: float = RECONNECT_MAX_S  # longest wait; the wait doubles per attempt
     max_readings: int | None = None  # end sensing (state "ended") after this many readings
     health: bool = True  # track drift health against a rest reference (live/health.py)
-    hold: bool = True  # hold the reading of a still load (live/hold.py; never erase it)
     rest_file: str | None = None  # calibration rest reference .npz (None: taken automatically)
     sim_drift: str | None = None  # the simulator's drift (sim/drift.py), e.g. "settle,bump"
 

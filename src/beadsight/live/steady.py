@@ -8,7 +8,6 @@ finger is held still. Used by the steady-load test and ``benchmarks/steady_press
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,15 +46,14 @@ def run_steady_press(
     checkpoint: str | Path | Any = None,
     hold_s: float = 60.0,
     *,
-    hold: bool = True,
     drift: str | None = None,
     settings: Any = None,
     seed: int = 0,
 ) -> SteadyPressResult:
     """Hold a simulated press ``hold_s`` s and read it live (module docstring).
 
-    hold: the steady-load hold (False: the model alone); drift: the simulator's drift
-    text; settings: base :class:`~beadsight.live.settings.LiveSettings`.
+    drift: the simulator's drift text; settings: base
+    :class:`~beadsight.live.settings.LiveSettings`.
     """
     from beadsight.checkpoint import load_checkpoint, shipped_model_path
     from beadsight.devices.virtual.camera import SimCamera
@@ -74,7 +72,7 @@ def run_steady_press(
         realtime=False,
         queue_frames=1,  # one frame at a time: a reading for every frame, as at 30 Hz
     )
-    settings = dataclasses.replace(settings or LiveSettings(), hold=hold)
+    settings = settings or LiveSettings()
     sensor = LiveSensor(model, camera, settings).open()
     rows = []
     stream = sensor.updates(maxsize=1_000_000)
