@@ -14,8 +14,10 @@ def register(commands) -> None:
 def drift_arguments(p: argparse.ArgumentParser) -> None:
     """Health options shared by ``live`` and ``health``."""
     p.add_argument(
-        "--rest", type=Path, default=None, help="calibration rest reference (.npz from "
-        "beadsight health --save-rest); default: taken when the pouch is first at rest",
+        "--rest", type=Path, default=None, metavar="FILE",
+        help="a stored rest reference (.npz from beadsight health --save-rest): the model "
+        "reads against it until the pouch is unloaded and still; default: the rest is taken "
+        "from still frames at start-up (keep the pouch unloaded then)",
     )  # fmt: skip
     p.add_argument(
         "--sim-drift", default=None, metavar="SPEC",
@@ -33,7 +35,7 @@ def _health_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=None, help="simulator seed")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--save-rest", type=Path, default=None, metavar="FILE",
-                   help="save the rest reference to FILE (.npz) for later runs")  # fmt: skip
+                   help="save the newest rest reference to FILE (.npz) for later runs")  # fmt: skip
     p.add_argument("--overwrite", action="store_true", help="replace an existing --save-rest")
     drift_arguments(p)
 
@@ -43,8 +45,8 @@ def run_health_command(args: argparse.Namespace) -> int:
 
     Keep the pouch unloaded. Prints ok, drifting or recalibrate (unknown: no rest
     reference was taken) with the figures behind it (bead creep, camera shift,
-    brightness, colour, zero-load force offset against the rest reference) and what to
-    do. --save-rest stores the rest reference for beadsight live --rest.
+    brightness, colour between rest states) and what to do. --save-rest stores the newest
+    rest reference for beadsight live --rest and beadsight calibrate --rest.
     """
     from beadsight.cli.options import given
     from beadsight.health.checkup import run_checkup

@@ -1,119 +1,107 @@
-"""The rest reference: what the sensor looks like unloaded, and what it then reads.
+"""Taking the rest reference: which frames show the pouch unloaded and still.
 
-A :class:`RestReference` is the average of still, unloaded frames: a gray image at
-:data:`REST_PX` px (for optical flow against later rest frames), the mean RGB colour
-and the force the model read meanwhile (its zero-load offset). It comes from
-calibration time (a rest file saved by ``beadsight health --save-rest``) or is taken
-automatically the first time the pouch is certainly unloaded. :class:`RestAverage`
-accumulates frames into one. Files are ``.npz`` (numpy arrays, no pickles), written
-atomically.
+A :class:`~beadsight.data.rest.RestReference` is the average of
+:data:`~beadsight.data.rest.REST_FRAMES` frames of the pouch at rest (the one averaging
+rule, :func:`~beadsight.data.rest.average_rest`). :class:`RestTracker` decides, frame by
+frame, when to take one:
+
+* **unloaded**: the model read at most the release force
+  (:class:`~beadsight.config.ContactThresholds`, 10 g) for the last
+  :data:`UNLOADED_READINGS` readings; before the first reading (a rest-referenced model
+  has none until it has a rest image) no frame is known to be loaded, so at start-up
+  still frames alone count;
+* **still**: :class:`~beadsight.health.stillness.StillnessDetector`;
+* **settled**: the rest image's frames are followed by :data:`REST_GUARD_FRAMES` more
+  unloaded, still frames, so the first frames of a press (not yet read as a load, not yet
+  seen as motion) never enter a rest image;
+* at most one rest reference per :data:`REST_REFRESH_S` of frame time.
+
+A steady load is never unloaded, so it is never taken for the rest state, however still.
+With each new reference the tracker says whether the pouch was loaded since the previous
+one (:attr:`RestTracker.loaded_before`), which the health monitor needs to tell drift
+from the new packing a press leaves.
 """
 
 from __future__ import annotations
 
-import io
-from dataclasses import dataclass
-from pathlib import Path
+import math
+from collections import deque
 
 import cv2
 import numpy as np
 
-from beadsight.errors import BeadSightError
-from beadsight.files import atomic_write_bytes
+from beadsight.data.rest import REST_FRAMES, REST_SETTLE_FRAMES, RestReference, average_rest
 
 REST_PX = 64  # rest images are compared at this size (px per side)
-REST_FILE_VERSION = 1
+UNLOADED_READINGS = REST_SETTLE_FRAMES  # readings at most the release force: unloaded (0.5 s)
+REST_GUARD_FRAMES = 8  # unloaded, still frames that must follow a rest image's frames
+REST_REFRESH_S = 1.0  # at most one new rest reference per this much frame time, s
 
 
-@dataclass(frozen=True)
-class RestReference:
-    """gray: (REST_PX, REST_PX) float32 0..255; mean_rgb: (3,) float64 0..255;
-    zero_force_n: mean force read at rest, N; frames: frames averaged; origin: "file",
-    "auto" or "given"."""
-
-    gray: np.ndarray
-    mean_rgb: np.ndarray
-    zero_force_n: float
-    frames: int
-    origin: str = "given"
-
-    def save(self, path: str | Path) -> Path:
-        """Write the reference to ``path`` (.npz), atomically."""
-        buf = io.BytesIO()
-        np.savez(
-            buf,
-            version=np.int64(REST_FILE_VERSION),
-            gray=self.gray.astype(np.float32),
-            mean_rgb=self.mean_rgb.astype(np.float64),
-            zero_force_n=np.float64(self.zero_force_n),
-            frames=np.int64(self.frames),
-        )
-        return atomic_write_bytes(path, buf.getvalue())
-
-
-def load_rest(path: str | Path) -> RestReference:
-    """A rest file written by :meth:`RestReference.save`; BeadSightError naming the file
-    and the field that is missing or wrong."""
-    path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except FileNotFoundError:
-        raise
-    except (OSError, ValueError) as e:
-        raise BeadSightError(f"rest file {path}: not a rest reference (.npz): {e}") from None
-    want = {"version": (), "gray": (REST_PX, REST_PX), "mean_rgb": (3,), "zero_force_n": ()}
-    for name, shape in {**want, "frames": ()}.items():
-        if name not in arrays:
-            raise BeadSightError(f"rest file {path}: field {name!r} is missing")
-        value = arrays[name]
-        if value.shape != shape or value.dtype.kind not in "fiu" or not np.isfinite(value).all():
-            raise BeadSightError(
-                f"rest file {path}: field {name!r} must be finite numbers of shape {shape}, "
-                f"got {value.dtype} {value.shape}"
-            )
-    if int(arrays["version"]) != REST_FILE_VERSION:
-        raise BeadSightError(
-            f"rest file {path}: version {int(arrays['version'])}, expected {REST_FILE_VERSION}"
-        )
-    return RestReference(
-        arrays["gray"].astype(np.float32),
-        arrays["mean_rgb"].astype(np.float64),
-        float(arrays["zero_force_n"]),
-        int(arrays["frames"]),
-        "file",
-    )
-
-
-def rest_gray(frame_rgb: np.ndarray) -> np.ndarray:
-    """frame_rgb: (H, W, 3) uint8 RGB -> (REST_PX, REST_PX) float32 gray 0..255."""
-    gray = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2GRAY)
+def rest_gray(image_rgb: np.ndarray) -> np.ndarray:
+    """image_rgb: (H, W, 3) uint8 RGB -> (REST_PX, REST_PX) float32 gray 0..255."""
+    gray = cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY)
     return cv2.resize(gray, (REST_PX, REST_PX), interpolation=cv2.INTER_AREA).astype(np.float32)
 
 
-class RestAverage:
-    """Sums rest frames (and the force read with each) into a :class:`RestReference`."""
+class RestTracker:
+    """Takes a rest reference whenever the pouch is unloaded and still (module docstring).
 
-    def __init__(self) -> None:
-        self.clear()
+    release_n: the force (N) at or below which a reading counts as unloaded; refresh_s:
+    frame time between two rest references; have_rest: a rest reference already exists
+    (a rest file), so the next one is "refreshed", not "start-up".
+    """
 
-    def clear(self) -> None:
-        self._gray = np.zeros((REST_PX, REST_PX), np.float64)
-        self._rgb = np.zeros(3, np.float64)
-        self._force = 0.0
-        self.frames = 0
-
-    def add(self, frame_rgb: np.ndarray, force_n: float) -> None:
-        """frame_rgb: (H, W, 3) uint8 RGB, an unloaded still frame; force_n: its reading."""
-        self._gray += rest_gray(frame_rgb)
-        self._rgb += frame_rgb.reshape(-1, 3).mean(axis=0)
-        self._force += float(force_n)
-        self.frames += 1
-
-    def reference(self, origin: str) -> RestReference:
-        if self.frames == 0:
-            raise ValueError("no rest frames yet")
-        n = self.frames
-        return RestReference(
-            (self._gray / n).astype(np.float32), self._rgb / n, self._force / n, n, origin
+    def __init__(
+        self, release_n: float, refresh_s: float = REST_REFRESH_S, have_rest: bool = False
+    ):
+        self.release_n = float(release_n)
+        self.refresh_s = float(refresh_s)
+        self.taken = 1 if have_rest else 0  # rest references taken (or given)
+        self.loaded_since_rest = False  # a reading above the release force since the last
+        self.loaded_before = False  # ... before the newest rest reference was taken
+        self._unloaded = 0  # consecutive readings at most the release force
+        self._readings = 0  # readings seen since start (none: start-up)
+        self._frames: deque[tuple[np.ndarray, float]] = deque(
+            maxlen=REST_FRAMES + REST_GUARD_FRAMES
         )
+        self._last_s = -math.inf
+
+    @property
+    def unloaded(self) -> bool:
+        """The newest :data:`UNLOADED_READINGS` readings were at most the release force."""
+        return self._unloaded >= UNLOADED_READINGS
+
+    def add(
+        self, frame_rgb: np.ndarray, t_s: float, still: bool, force_n: float | None
+    ) -> RestReference | None:
+        """One frame (``force_n``: its reading, N, or None for a frame without one) at
+        frame time ``t_s``; ``still``: the frames are still. Returns a new rest reference
+        when this frame completes one, else None."""
+        if force_n is not None:
+            self._readings += 1
+            if force_n <= self.release_n:
+                self._unloaded += 1
+            else:
+                self._unloaded = 0
+                self.loaded_since_rest = True
+        at_rest = still and (self.unloaded or (self._readings == 0 and self.taken == 0))
+        if not at_rest:
+            self._frames.clear()
+            return None
+        self._frames.append((frame_rgb.copy(), float(t_s)))
+        if len(self._frames) < self._frames.maxlen or t_s - self._last_s < self.refresh_s:
+            return None
+        frames = [f for f, _ in list(self._frames)[:REST_FRAMES]]
+        taken_at_s = self._frames[REST_FRAMES - 1][1]
+        self._frames.clear()
+        self._last_s = t_s
+        self.loaded_before, self.loaded_since_rest = self.loaded_since_rest, False
+        origin = "refreshed" if self.taken else "start-up"
+        self.taken += 1
+        return RestReference(average_rest(np.stack(frames)), REST_FRAMES, taken_at_s, origin)
+
+    def reset(self) -> None:
+        """The stream restarted: forget the frames and readings seen (not what was taken)."""
+        self._frames.clear()
+        self._unloaded = 0
