@@ -95,22 +95,26 @@ def run_steady_press(
     with sensor:
         for u in stream:
             health = u.health.state if u.health is not None else "none"
-            r = u.reading
-            rows.append((r.timestamp_s, r.force_n, u.reference_force_n, health))
-    return judge(rows, rests, 1.0 / config.fps)
+            sim_s = u.source_index / config.fps
+            rows.append(
+                (sim_s, u.reading.timestamp_s, u.reading.force_n, u.reference_force_n, health)
+            )
+    return judge(rows, rests)
 
 
 def judge(
-    rows: list[tuple[float, float, float, str]], rests: list[float], frame_s: float
+    rows: list[tuple[float, float, float, float, str]], rests: list[float]
 ) -> SteadyPressResult:
-    """rows: (capture time s, published N, true N, health state) per reading; rests: the
-    capture time of each rest reference's newest frame; frame_s: the frame period."""
+    """rows: (simulated time s, capture time s, published N, true N, health state) per
+    reading, one per frame; rests: the capture time of each rest reference's newest frame."""
     t = np.array([r[0] for r in rows])
-    published = np.array([r[1] for r in rows])
-    true = np.array([r[2] for r in rows])
-    touched = t[true > 0]  # the finger on the pouch: no rest image may hold these frames
-    first_frame = np.asarray(rests) - (REST_FRAMES - 1) * frame_s
-    while_loaded = int(((np.asarray(rests) >= touched[0]) & (first_frame <= touched[-1])).sum())
+    captured = np.array([r[1] for r in rows])
+    published = np.array([r[2] for r in rows])
+    true = np.array([r[3] for r in rows])
+    touched = np.flatnonzero(true > 0)  # the finger on the pouch: no rest image holds these
+    newest = np.searchsorted(captured, np.asarray(rests))  # the reading of each rest's frame
+    oldest = newest - (REST_FRAMES - 1)
+    while_loaded = int(((newest >= touched[0]) & (oldest <= touched[-1])).sum())
     loaded = true > HELD_FRACTION * true.max()
     start, end = t[loaded][0] + SETTLE_S, t[loaded][-1] - RISE_S
     held = loaded & (t >= start) & (t <= end)
@@ -129,7 +133,7 @@ def judge(
         max_deviation_pct=float(deviation.max()),
         end_deviation_pct=float(end_dev.max()),
         rests_while_loaded=while_loaded,
-        health=rows[int(np.flatnonzero(held)[-1])][3],
+        health=rows[int(np.flatnonzero(held)[-1])][4],
     )
 
 

@@ -53,10 +53,12 @@ def test_live_response_measures_a_known_lag_error_and_latch():
 def test_steady_press_judges_the_held_frames_and_counts_rests_under_load():
     steady = benchmark("steady_press")
     t = np.arange(0, 20, 1 / FPS)
+    captured = 1000 + t / 4  # frames read 4 times faster than the camera rate
     true = np.where((t > 5) & (t < 15), 6.0, 0.0)
     published = np.where(true > 0, 5.7, 0.0)  # 5 % low throughout
-    rows = [(ti, p, f, "ok") for ti, p, f in zip(t, published, true, strict=True)]
-    result = steady.judge(rows, [1.0, 2.0, 16.0], 1 / FPS)
+    rows = list(zip(t, captured, published, true, ["ok"] * len(t), strict=True))
+    result = steady.judge(rows, [1000.25, 1000.5, 1004.0])
     assert result.max_deviation_pct == pytest.approx(5.0) and result.rests_while_loaded == 0
     assert result.seconds == pytest.approx(10 - 1.5, abs=0.1)
-    assert steady.judge(rows, [5.1, 15.1], 1 / FPS).rests_while_loaded == 2
+    assert steady.judge(rows, [1001.3, 1003.8]).rests_while_loaded == 2  # t = 5.2 s, 15.2 s
+    assert steady.judge(rows, [1003.8 + 8 / FPS / 4]).rests_while_loaded == 0  # t = 15.47 s

@@ -44,8 +44,8 @@ class SensorWatch:
     file; its image is the model's rest until the pouch is next unloaded and still), or
     None. settings: :class:`HealthSettings`. health: run the health monitor (False: only
     the rest reference is kept). background: health checks on a worker thread. on_rest:
-    called with each new rest reference, on the caller's thread. release_n: readings at
-    most this force (N) are unloaded (default: the 10 g release force).
+    called with each new rest reference, on the caller's thread. thresholds: the release
+    and contact forces that tell an unloaded pouch (default: 10 g and 50 g).
     """
 
     def __init__(
@@ -57,12 +57,11 @@ class SensorWatch:
         health: bool = True,
         background: bool = False,
         on_rest: Callable[[RestReference], None] | None = None,
-        release_n: float | None = None,
+        thresholds: ContactThresholds | None = None,
     ):
         settings = settings or HealthSettings()
-        release_n = ContactThresholds().release_n if release_n is None else release_n
         self.stillness = StillnessDetector()
-        self.tracker = RestTracker(release_n, settings.rest_refresh_s, reference is not None)
+        self.tracker = RestTracker(thresholds, settings.rest_refresh_s, reference is not None)
         self.monitor = (
             HealthMonitor(sensor_size_mm, settings, reference, background) if health else None
         )
