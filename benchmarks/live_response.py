@@ -16,8 +16,9 @@ in it (a press: the true force from above the 10 g release force back down to it
 * the force error over in-contact readings, ``100 sum |F - F_true| / sum F_true`` (the
   paper's total-force error, on these readings).
 
-Presses where the true force never reaches 1 N are left out; presses where the reading
-never crosses 1 N are counted as ``missed``. The last line is a JSON object (--json: the
+A press's readings are looked at from 0.5 s before its true force leaves the release
+force to 0.5 s before the next press's do. Presses where the true force never reaches 1 N
+are left out; presses where the reading never crosses 1 N are counted as ``missed``. The last line is a JSON object (--json: the
 only line).
 """
 
@@ -55,8 +56,9 @@ def response(t_s: np.ndarray, force_n: np.ndarray, true_n: np.ndarray, latency_s
         if not len(up):
             continue
         true_on, true_off = first + up[0], first + up[-1] + 1
-        lo = max(bounds[k], int(np.searchsorted(t_s, t_s[first] - LOOK_BEFORE_S)))
-        hi = spans[k + 1][0] if k + 1 < len(spans) else len(t_s)
+        lo = max(bounds[k], _index(t_s, t_s[first] - LOOK_BEFORE_S))
+        # up to where the next press's onset is looked for
+        hi = _index(t_s, t_s[spans[k + 1][0]] - LOOK_BEFORE_S) if k + 1 < len(spans) else len(t_s)
         read = np.flatnonzero(force_n[lo:hi] >= CROSSING_N)
         if not len(read):
             missed += 1
@@ -81,6 +83,11 @@ def response(t_s: np.ndarray, force_n: np.ndarray, true_n: np.ndarray, latency_s
         "force_error_pct": round(100 * float(error), 2) if len(contact) else None,
         "latency_ms_median": _ms(np.median(latency_s)) if len(latency_s) else None,
     }
+
+
+def _index(t_s: np.ndarray, at_s: float) -> int:
+    """The first reading at or after ``at_s``."""
+    return int(np.searchsorted(t_s, at_s))
 
 
 def _ms(seconds: float) -> float:
