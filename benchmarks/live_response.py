@@ -8,7 +8,9 @@ true force of each reading's frame, ``reference_force_n``) and reports, over the
 in it (a press: the true force from above the 10 g release force back down to it):
 
 * onset lag: frame time from the true force's first 1 N crossing to the reading's, and
-  release lag: from the true force's last fall below 1 N to the reading's (median, max;
+  release lag: from the true force's last fall below 1 N to the reading's fall below 1 N
+  that lasts (it stays below for 0.3 s; a reading over 1 N later, while unloaded, is
+  counted in ``unloaded_over_1n_pct``: readings of 1 N or more at a true 0 N) (median, max;
   ms of capture time, so the camera rate sets the resolution; the processing latency,
   capture to reading, is reported apart as ``latency_ms_median``);
 * the share of in-contact readings (true force > 2 N) whose force repeats the previous
@@ -35,6 +37,7 @@ from beadsight.config import ContactThresholds
 CROSSING_N = 1.0  # the force whose crossings time onset and release, N
 IN_CONTACT_N = 2.0  # readings with a true force above this count as in contact (paper: CoP)
 LOOK_BEFORE_S = 0.5  # a reading may cross this long before the true force does
+RELEASED_S = 0.3  # the reading has fallen once it stays below 1 N this long
 
 
 def press_spans(true_n: np.ndarray) -> list[tuple[int, int]]:
@@ -63,10 +66,13 @@ def response(t_s: np.ndarray, force_n: np.ndarray, true_n: np.ndarray, latency_s
         if not len(read):
             missed += 1
             continue
-        read_on, read_off = lo + read[0], lo + read[-1] + 1
+        read_on = lo + read[0]
         onset.append(t_s[read_on] - t_s[true_on])
-        if read_off < len(t_s) and true_off < len(t_s):
+        read_off = _released(t_s, force_n, read_on, hi)
+        if read_off is not None and true_off < len(t_s):
             release.append(t_s[read_off] - t_s[true_off])
+    unloaded = true_n == 0
+    false_pct = 100 * float((force_n[unloaded] >= CROSSING_N).mean()) if unloaded.any() else None
     contact = np.flatnonzero(true_n > IN_CONTACT_N)
     contact = contact[contact > 0]
     repeats = force_n[contact] == force_n[contact - 1]
@@ -81,8 +87,21 @@ def response(t_s: np.ndarray, force_n: np.ndarray, true_n: np.ndarray, latency_s
         "in_contact_readings": len(contact),
         "repeated_pct": round(100 * float(repeats.mean()), 2) if len(contact) else None,
         "force_error_pct": round(100 * float(error), 2) if len(contact) else None,
+        "unloaded_over_1n_pct": round(false_pct, 2) if false_pct is not None else None,
         "latency_ms_median": _ms(np.median(latency_s)) if len(latency_s) else None,
     }
+
+
+def _released(t_s: np.ndarray, force_n: np.ndarray, start: int, end: int) -> int | None:
+    """The first reading in [start, end) from which the reading stays below 1 N for
+    RELEASED_S (or to ``end``); None if there is none."""
+    below = force_n[start:end] < CROSSING_N
+    for i in np.flatnonzero(below):
+        k = start + i
+        stop = min(_index(t_s, t_s[k] + RELEASED_S), end)
+        if below[i : stop - start].all():
+            return int(k)
+    return None
 
 
 def _index(t_s: np.ndarray, at_s: float) -> int:
