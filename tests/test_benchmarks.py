@@ -47,10 +47,10 @@ def test_live_response_measures_a_known_lag_error_and_latch():
     latched[(true > 2) & (np.arange(len(true)) % 10 != 0)] = 5.0  # the same value again
     assert live.response(t, latched, true, np.zeros(len(t)))["repeated_pct"] > 70
     blip = late.copy()
-    blip[np.searchsorted(t, 3.2) : np.searchsorted(t, 3.3)] = 1.5  # at rest, before press 2
+    blip[np.searchsorted(t, 3.36) : np.searchsorted(t, 3.46)] = 1.5  # at rest, before press 2
     got = live.response(t, blip, true, np.zeros(len(t)))
     assert got["release_lag_ms_max"] == pytest.approx(66.7, abs=0.1)  # not the blip
-    assert got["unloaded_over_1n_pct"] == pytest.approx(100 * 3 / (true == 0).sum())
+    assert got["unloaded_over_1n_pct"] == pytest.approx(100 * 3 / (true == 0).sum(), abs=0.01)
     nothing = live.response(t, np.zeros(len(t)), true, np.zeros(len(t)))
     assert nothing["missed"] == 3 and nothing["onset_lag_ms_median"] is None
 
