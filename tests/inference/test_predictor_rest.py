@@ -9,6 +9,7 @@ import logging
 
 import numpy as np
 import pytest
+import torch
 from inference_helpers import stream
 
 from beadsight.checkpoint import load_checkpoint, shipped_model_path
@@ -90,7 +91,13 @@ def test_the_rest_survives_reset(rest_model):
     assert predictor.rest is rest
 
 
-RUNTIMES = [("torch", None), ("onnx", "onnxruntime"), ("openvino", "openvino"), ("ring", None)]
+RUNTIMES = [
+    ("torch", None),
+    ("onnx", "onnxruntime"),
+    ("openvino", "openvino"),
+    ("ring", None),
+    pytest.param("cuda", None, marks=pytest.mark.gpu),
+]
 
 
 def _runtime(model, name, module):
@@ -98,6 +105,8 @@ def _runtime(model, name, module):
         pytest.skip(f"{module} is not installed")
     if name == "ring":  # the CUDA backend's device ring, eagerly on the CPU
         return CudaGraphBackend(model, "fp32", device="cpu", use_graphs=False)
+    if name == "cuda" and not torch.cuda.is_available():
+        pytest.skip("needs a CUDA device")
     try:
         return build_backend(model, name, "fp32", cache_dir=None)
     except BackendUnavailableError as e:
@@ -110,6 +119,8 @@ def test_the_rest_reaches_every_runtime(rest_model, name, module):
     the first frames' average, then a new rest set mid-stream (a stateful runtime that
     kept the old one would fail), and agrees with fp32 torch on the parity probe."""
     backend = _runtime(rest_model, name, module)
+    if name == "cuda":
+        assert backend.use_graphs  # the rest image reaches the captured graphs
     if name != "ring":
         parity = check_parity(backend, rest_model)
         assert parity.ok and parity.max_abs_err_kpa <= 1e-4, str(parity)
