@@ -15,7 +15,7 @@ from live_helpers import TINY, TORCH, StatusLog
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig
-from beadsight.data.rest import with_rest
+from beadsight.data.rest import REST_FRAMES, with_rest
 from beadsight.devices.virtual.camera import SimCamera
 from beadsight.health.checkup import run_checkup
 from beadsight.live.sensor import WAITING_FOR_REST, LiveSensor
@@ -107,3 +107,13 @@ def test_health_save_rest_writes_what_live_rest_reads(quiet_model, tmp_path):
     stored = dataclasses.replace(TORCH, rest_file=str(path))
     _, seen, _ = run(quiet_model, stored, 1.0)
     assert seen and seen[0][0].source_index == quiet_model.span - 1
+
+
+def test_bench_live_runs_a_rest_referenced_model(rest_model):
+    """``beadsight bench live``: the predictor takes its rest from the first frames, and
+    its parity windows carry that rest image."""
+    from beadsight.live.bench import bench_live
+
+    frames = np.random.default_rng(0).integers(0, 256, (40, 64, 64, 3), np.uint8)
+    result = bench_live(rest_model, "torch", "fp32", 40, None, source_frames=frames)
+    assert result.throughput.readings >= 40 - REST_FRAMES and result.max_abs_err_pct < 1e-3
