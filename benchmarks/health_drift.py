@@ -12,9 +12,12 @@ Drift is the change of the rest state between two unloaded moments
   the simulated time each health state first shows;
 * with presses: the same drifts while the simulator presses (a new bead packing after
   every press), read by a perfect model (each reading is the true force);
+* with ``--checkpoint``: the drifts with presses again, read by the live pipeline
+  (LiveSensor, default settings, every frame read, frames as fast as it reads them, so a
+  rest reference is taken whenever one is ready: every 20 frames at rest);
 * clean: ``--clean-minutes`` of the simulator's presses without drift on ``--seeds`` seeds,
-  read by a perfect model and, with ``--checkpoint``, by the live pipeline (LiveSensor,
-  default settings, every frame read): readings in a drifting or recalibrate state.
+  read by a perfect model and, with ``--checkpoint``, by the live pipeline: readings in a
+  drifting or recalibrate state.
 
 Frames at the checkpoint's size (64 px without one), 30 fps. The last line is a JSON
 object (--json: the only line).
@@ -40,8 +43,8 @@ def timeline(kind: str, seconds: float, presses: bool, size: int, seed: int = 0)
     return {s: round(first[s], 2) if s in first else None for s in STATES}
 
 
-def live_clean(checkpoint: str, minutes: float, seed: int) -> dict:
-    """The live pipeline on ``minutes`` of the simulator's presses (no drift)."""
+def live_run(checkpoint: str, minutes: float, seed: int, drift: str | None = None) -> dict:
+    """The live pipeline on ``minutes`` of the simulator's presses under ``drift``."""
     from beadsight.checkpoint import load_checkpoint
     from beadsight.devices.virtual.camera import SimCamera
     from beadsight.live.sensor import LiveSensor
@@ -49,8 +52,12 @@ def live_clean(checkpoint: str, minutes: float, seed: int) -> dict:
 
     model = load_checkpoint(checkpoint)
     frames = int(minutes * 60 * 30)
-    camera = SimCamera(model.image_size, seed=seed, realtime=False, queue_frames=1)
+    camera = SimCamera(model.image_size, seed=seed, drift=drift, realtime=False, queue_frames=1)
     sensor = LiveSensor(model, camera, LiveSettings(max_readings=frames)).open()
+    # frames come as fast as they are read, stamped with the host's clock: take a rest
+    # whenever the tracker has one (every 20 frames at rest, 0.67 s of simulated time)
+    # rather than once a host second (fewer per simulated second, the faster the machine)
+    sensor.watch.tracker.refresh_s = 0.0
     rests = []
     take = sensor.watch.on_rest
     sensor.watch.on_rest = lambda r: (rests.append(r.taken_at_s), take(r))
@@ -101,6 +108,12 @@ def main() -> None:
                 f"{part:12s} {kind:16s} ok at {at['ok']}, drifting at {at['drifting']}, "
                 f"recalibrate at {at['recalibrate']} ({wall:.1f} s wall)"
             )
+    if args.checkpoint:  # the drifts with presses, read by the live pipeline
+        out["live_with_presses"] = {}
+        for kind in KINDS[1:]:
+            run = live_run(args.checkpoint, args.seconds / 60, 0, kind)
+            out["live_with_presses"][kind] = run["first"]
+            say(f"live         {kind:16s} {json.dumps(run)}")
     seconds = args.clean_minutes * 60
     out["clean"] = []
     for seed in range(args.seeds):
@@ -108,7 +121,7 @@ def main() -> None:
         perfect = timeline("none", seconds, True, size, seed)
         row = {"seed": seed, "perfect_model": perfect}
         if args.checkpoint:
-            row["live"] = live_clean(args.checkpoint, args.clean_minutes, seed)
+            row["live"] = live_run(args.checkpoint, args.clean_minutes, seed)
         out["clean"].append(row)
         say(f"clean seed {seed}: {json.dumps(row)} ({time.perf_counter() - start:.0f} s wall)")
     print(json.dumps(out))

@@ -176,3 +176,29 @@ def test_rest_images_are_the_one_average():
         watch.process(frames[k % REST_FRAMES], truth(0.0, k / FPS))
     assert len(taken) == 1 and watch.monitor is None
     np.testing.assert_array_equal(taken[0].image, average_rest(frames))
+
+
+def test_creep_that_raised_the_state_stays_counted():
+    """Creep while unloaded adds up over the stretches between presses: a stretch over
+    0.1 mm counts, and a smaller one that takes the figure past the drifting threshold
+    counts too (the state does not fall back once the next press starts a new stretch)."""
+    import cv2
+
+    rng = np.random.default_rng(4)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (SIZE, SIZE)).astype(np.float32), (0, 0), 1.5)
+
+    def contracted(mm: float) -> RestReference:  # beads drawn mm inward at half the field
+        scale = 1 - mm / (SENSOR_MM / 2)
+        warp = cv2.getRotationMatrix2D(((SIZE - 1) / 2, (SIZE - 1) / 2), 0, scale)
+        gray = cv2.warpAffine(texture, warp, (SIZE, SIZE), borderMode=cv2.BORDER_REFLECT)
+        image = np.clip(gray, 0, 255).astype(np.uint8)[..., None].repeat(3, axis=2)
+        return RestReference(image, 8, 0.0, "refreshed")
+
+    monitor = HealthMonitor(SENSOR_MM)
+    figures = []
+    for mm, loaded in [(0, False), (0.25, False), (0.25, True), (0.34, False), (0.34, True)]:
+        monitor.add(contracted(mm), loaded)
+        figures.append(round(monitor.report.figures["bead_creep_mm"], 2))
+    assert figures[1] == pytest.approx(0.25, abs=0.04)  # within the first stretch
+    assert figures[3] == pytest.approx(0.34, abs=0.05) and monitor.report.state == "drifting"
+    assert figures[4] == pytest.approx(figures[3], abs=0.02)  # kept across the press

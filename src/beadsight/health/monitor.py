@@ -17,8 +17,9 @@ figure                     how (rest images at 64 px, OpenCV Farneback flow)   d
                            the field of view: within the current unloaded
                            stretch, from its first rest state to now, plus the
                            earlier stretches' deformation where it was over
-                           :data:`CREEP_STEP_MM` (the beads crept while
-                           nothing touched them)
+                           :data:`CREEP_STEP_MM` or took the creep past the
+                           drifting threshold (the beads crept while nothing
+                           touched them)
 ``camera_shift_mm``        the flow's median (the whole image moved): within    0.5 / 1.5
                            the current stretch, plus every earlier shift
                            between two rest states (within a stretch or across
@@ -211,10 +212,18 @@ class DriftState:
     """The drift figures of a sequence of rest states (module docstring); not thread-safe.
 
     reference: a rest file's reference (the first state), or None (the first state added).
+    creep_alarm_mm: the creep that raises the state (a finished stretch that took the creep
+    past it is counted whatever its size, so the state does not fall back by bookkeeping).
     """
 
-    def __init__(self, sensor_size_mm: float, reference: RestReference | None = None):
+    def __init__(
+        self,
+        sensor_size_mm: float,
+        reference: RestReference | None = None,
+        creep_alarm_mm: float = HealthThresholds().bead_creep_mm[0],
+    ):
         self.sensor_size_mm = float(sensor_size_mm)
+        self.creep_alarm_mm = float(creep_alarm_mm)
         self.reference = reference
         self._anchor = _Seen.of(reference) if reference is not None else None
         self._start: _Seen | None = None  # first rest state of the current unloaded stretch
@@ -248,8 +257,11 @@ class DriftState:
         """Count the finished stretch's deformation and shift where over their steps, and
         the shift across the load; ``seen`` starts a new stretch."""
         deformation, shift = self._now
-        if deformation_mm(deformation) >= CREEP_STEP_MM:
-            self._deformation += deformation
+        total = self._deformation + deformation
+        if deformation_mm(deformation) >= CREEP_STEP_MM or (
+            deformation_mm(total) >= self.creep_alarm_mm
+        ):
+            self._deformation = total
         if np.linalg.norm(shift) >= SHIFT_STEP_MM:
             self._shift += shift
         across = flow_change(self._last.gray, seen.gray, self.sensor_size_mm)[1]
@@ -275,7 +287,8 @@ class HealthMonitor:
         background: bool = False,
     ):
         self.settings = settings or HealthSettings()
-        self.drift = DriftState(sensor_size_mm, reference)
+        creep_alarm_mm = self.settings.thresholds.bead_creep_mm[0]
+        self.drift = DriftState(sensor_size_mm, reference, creep_alarm_mm)
         self._report = UNKNOWN
         self._lock = threading.Lock()
         self._pending: tuple[RestReference, bool] | None = None
