@@ -92,6 +92,21 @@ def strided_model(probe_model) -> PressureModel:
     return model
 
 
+@pytest.fixture(scope="session")
+def rest_model() -> PressureModel:
+    """An untrained rest-referenced model for 64x64 frames: the rest image, then a span of
+    7 frames of which it sees every 2nd (4 frames); shared by a session."""
+    torch.manual_seed(1)
+    meta = CheckpointMeta(
+        model=ModelConfig(frames=4, frame_stride=2, width=8, rest_input=True),
+        geometry=TINY,
+        pixel_mean=[120.0] * 3,
+        pixel_std=[40.0] * 3,
+        output_scale_kpa=10.0,
+    )
+    return PressureModel.create(meta)
+
+
 @pytest.fixture
 def full_disk(tmp_path: Path):
     """A real small disk (tmpfs, 256 KiB) that fills up; skips where it cannot be mounted.

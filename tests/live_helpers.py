@@ -28,7 +28,6 @@ TINY = SensorGeometry(image_size_px=64)
 SPAN = 15  # frames per window of tiny_model() (15 frames, stride 1)
 TORCH = LiveSettings(backend="torch", precision="fp32")  # fast to build; "auto" times candidates
 BACKEND = {"settings": TORCH}
-MODEL_ONLY = {"settings": LiveSettings(backend="torch", precision="fp32", hold=False)}  # no hold
 
 
 def live_argv(checkpoint: Path, source: Path, *more: str) -> list[str]:

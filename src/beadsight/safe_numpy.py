@@ -17,11 +17,18 @@ Use::
     obj = materialize(obj)   # stand-ins -> numpy arrays; UnsafeContent if unfinished
 
 Anything else raises :class:`UnsafeContent` with a sentence saying what was refused.
+
+:func:`read_npz` reads named arrays of an ``.npz`` file the same way: each array's
+declared dtype, shape and size (in the zip directory and in its ``.npy`` header) are
+checked against what the caller expects before any of its data is read, and no more
+bytes than the expected size are ever decompressed.
 """
 
 from __future__ import annotations
 
 import math
+import zipfile
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -179,3 +186,91 @@ def _materialize(obj: Any, seen: dict[int, Any]) -> Any:
         if any(a is not b for a, b in zip(items, obj, strict=True)):
             seen[id(obj)] = tuple(items) if type(obj) is tuple else type(obj)(items)
     return seen[id(obj)]
+
+
+NPY_HEADER_MAX_BYTES = 10_000  # numpy's own default limit on a .npy header
+
+
+def read_npz(
+    path: str | Path, fields: dict[str, tuple[tuple[int | None, ...], str]], max_bytes: int
+) -> dict[str, np.ndarray]:
+    """The arrays ``fields`` of the ``.npz`` file ``path``, checked before they are read.
+
+    fields: name -> (shape, kinds): ``shape`` with ``None`` for any length, ``kinds`` the
+    numpy kind letters allowed ("u", "i", "f", "b"). max_bytes: the most data one array
+    may hold. Members not named are never read. Raises :class:`UnsafeContent` naming the
+    field for a missing field, a dtype or shape other than expected, a size over
+    ``max_bytes`` (whatever the zip or the header claims: nothing is allocated for it)
+    or data shorter than declared; OSError if the file cannot be read.
+    """
+    try:
+        archive = zipfile.ZipFile(path)
+    except zipfile.BadZipFile as e:
+        raise UnsafeContent(f"not an .npz file (a zip of .npy arrays): {e}") from None
+    with archive:
+        return {
+            name: _read_member(archive, name, *want, max_bytes) for name, want in fields.items()
+        }
+
+
+def _read_member(
+    archive: zipfile.ZipFile,
+    name: str,
+    shape: tuple[int | None, ...],
+    kinds: str,
+    max_bytes: int,
+) -> np.ndarray:
+    try:
+        info = archive.getinfo(f"{name}.npy")
+    except KeyError:
+        raise UnsafeContent(f"field {name!r} is missing") from None
+    limit = max_bytes + NPY_HEADER_MAX_BYTES + 128  # magic, header length, padding
+    if info.file_size > limit:
+        raise UnsafeContent(
+            f"field {name!r} claims {info.file_size} bytes; at most {max_bytes} bytes of data "
+            "are expected"
+        )
+    try:
+        with archive.open(info) as f:
+            version = np.lib.format.read_magic(f)
+            read_header = {
+                (1, 0): np.lib.format.read_array_header_1_0,
+                (2, 0): np.lib.format.read_array_header_2_0,
+            }.get(version)
+            if read_header is None:
+                raise UnsafeContent(f"field {name!r}: .npy format version {version}")
+            got, fortran, dtype = read_header(f, max_header_size=NPY_HEADER_MAX_BYTES)
+            _check_member(name, got, dtype, shape, kinds, max_bytes)
+            nbytes = math.prod(got) * dtype.itemsize
+            data = f.read(nbytes)
+    except (ValueError, zipfile.BadZipFile, EOFError, NotImplementedError) as e:
+        raise UnsafeContent(f"field {name!r}: not a readable .npy array: {e}") from None
+    if len(data) != nbytes:
+        raise UnsafeContent(f"field {name!r}: {len(data)} bytes of data, {nbytes} declared")
+    array = np.frombuffer(data, dtype=dtype).reshape(got, order="F" if fortran else "C")
+    return array.copy()
+
+
+def _check_member(
+    name: str,
+    got: Any,
+    dtype: np.dtype,
+    shape: tuple[int | None, ...],
+    kinds: str,
+    max_bytes: int,
+) -> None:
+    if dtype.str[1:] not in SAFE_TYPE_CODES or dtype.kind not in kinds:
+        raise UnsafeContent(f"field {name!r} has dtype {dtype}; expected kind {kinds!r}")
+    if not isinstance(got, tuple) or not all(type(n) is int and n >= 0 for n in got):
+        raise UnsafeContent(f"field {name!r} has shape {got!r}")
+    if len(got) != len(shape) or any(
+        w is not None and n != w for n, w in zip(got, shape, strict=True)
+    ):
+        want = tuple("any" if w is None else w for w in shape)
+        raise UnsafeContent(f"field {name!r} has shape {got}; expected {want}")
+    nbytes = math.prod(got) * dtype.itemsize
+    if nbytes > max_bytes:
+        raise UnsafeContent(
+            f"field {name!r} declares shape {got} {dtype} ({nbytes} bytes); at most "
+            f"{max_bytes} bytes are expected"
+        )

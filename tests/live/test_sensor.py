@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 from live_helpers import (
     BACKEND,
-    MODEL_ONLY,
     SPAN,
     TINY,
     TORCH,
@@ -49,7 +48,7 @@ def presses():
 def test_every_reading_matches_the_model_on_its_window(model, presses):
     frames, force = presses
     source = ScriptedSource(frames, forces=force)
-    sensor = LiveSensor(model, source, **MODEL_ONLY).open()  # the model's own readings
+    sensor = LiveSensor(model, source, **BACKEND).open()  # the model's own readings
     stream = sensor.updates()  # registered before start: sees every reading
     with sensor:
         updates = list(stream)
@@ -80,7 +79,7 @@ def test_paced_source_runs_at_camera_rate_and_reports_latency(model, presses):
         got.append(reading)
         stats_during.append(sensor.stats())
 
-    sensor = LiveSensor(model, source, **MODEL_ONLY)
+    sensor = LiveSensor(model, source, **BACKEND)
     sensor.on_reading(on_reading)  # registered before start: sees every reading
     with sensor:
         assert sensor.wait(30)
@@ -109,7 +108,7 @@ def test_loop_slower_than_camera_keeps_windows_consecutive(model, presses):
         updates.append(update)
         stats.append(sensor.stats())
 
-    sensor = LiveSensor(model, source, **MODEL_ONLY)
+    sensor = LiveSensor(model, source, **BACKEND)
     sensor.on_update(on_update)
     with sensor:
         assert sensor.wait(30)

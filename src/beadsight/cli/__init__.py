@@ -24,7 +24,16 @@ from collections.abc import Callable, Iterable, Sequence
 
 from beadsight import __version__
 
-AREAS = ("data", "train", "evaluate", "sim", "rig", "export", "live", "health")  # modules, in help order
+AREAS = (
+    "data",
+    "train",
+    "evaluate",
+    "sim",
+    "rig",
+    "export",
+    "live",
+    "health",
+)  # modules, in help order
 EXIT_USER_ERROR = 1
 EXIT_INTERNAL_ERROR = 70  # EX_SOFTWARE (sysexits.h)
 EXIT_INTERRUPTED = 130

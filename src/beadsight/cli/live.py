@@ -170,7 +170,6 @@ def run_live_command(args: argparse.Namespace) -> int:
         max_readings=args.frames,
         rest_file=args.rest,
         sim_drift=args.sim_drift,
-        hold=not args.no_hold,
         **given(backend=args.backend, precision=args.precision, seed=args.seed),
     )
     sensor = LiveSensor(args.checkpoint, settings=settings, **given(source=args.source))

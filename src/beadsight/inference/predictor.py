@@ -47,6 +47,20 @@ camera jitter is not a drop).
 Timestamps must increase strictly; a repeated or earlier timestamp is refused
 with a ValueError (feeding the same frame twice is a capture bug).
 
+Rest reference
+--------------
+A rest-referenced model (``model.rest == 1``) reads pressure against an image of the
+unloaded pouch, the *rest image*. :meth:`PressurePredictor.set_rest` sets it (one
+(S, S, 3) image, or (K, S, S, 3) frames averaged by
+:func:`beadsight.data.rest.average_rest`, the one averaging rule); :attr:`~PressurePredictor.rest`
+reads it back. Until one is set, ``PredictorSettings.initial_rest`` decides:
+``"first_frames"`` (default) averages the first :data:`~beadsight.data.rest.REST_FRAMES`
+frames the predictor receives into the rest image (logged once: keep the pouch unloaded
+when sensing starts); ``"wait"`` buffers frames but returns no reading until
+:meth:`~PressurePredictor.set_rest` is called (``beadsight live`` waits for still frames,
+or uses a stored rest). The rest image survives :meth:`~PressurePredictor.reset` (it
+belongs to the pouch, not to the stream). Models without a rest input ignore all this.
+
 Contact
 -------
 ``contact_mask`` is ``pressure_kpa >= contact_threshold_kpa``: by default the pressure
@@ -69,6 +83,7 @@ import numpy as np
 
 from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.config import ContactThresholds, SensorGeometry
+from beadsight.data.rest import REST_FRAMES, average_rest
 from beadsight.evaluation.metrics import otsu_masks
 from beadsight.files import Closes
 from beadsight.geometry import (
@@ -87,6 +102,7 @@ DEFAULT_MAX_GAP_FRAMES = 3  # missing frames tolerated before on_gap applies (10
 GAP_TOLERANCE = 1.5  # dt below this many frame periods is jitter, not a dropped frame
 GAP_POLICIES = ("reset", "hold", "ignore")
 CONTACT_METHODS = ("threshold", "otsu")
+INITIAL_REST = ("first_frames", "wait")
 
 
 @dataclass(frozen=True)
@@ -129,8 +145,15 @@ class PredictorSettings:
     contact_threshold_kpa: float | None = None  # None: the release force over the finger
     contact_method: str = "threshold"  # threshold | otsu
     contact_force_n: float | None = None  # has_contact at or above; None: the 50 g force
+    initial_rest: str = (
+        "first_frames"  # rest-referenced models before set_rest: first_frames | wait
+    )
 
     def __post_init__(self) -> None:
+        if self.initial_rest not in INITIAL_REST:
+            raise ValueError(
+                f"initial_rest must be one of {INITIAL_REST}, got {self.initial_rest!r}"
+            )
         if self.on_gap not in GAP_POLICIES:
             raise ValueError(f"on_gap must be one of {GAP_POLICIES}, got {self.on_gap!r}")
         if self.contact_method not in CONTACT_METHODS:
@@ -209,6 +232,8 @@ class PressurePredictor(Closes):
         s, n = self.image_size, self.span
         self._frames = np.zeros((1, 2 * n, s, s, 3), dtype=np.uint8)  # doubled ring buffer
         self._times = np.zeros(2 * n, dtype=np.float64)
+        self._rest: np.ndarray | None = None  # the rest image, read-only (rest models)
+        self._first: list[np.ndarray] = []  # first frames, averaged into the rest image
         self.reset()
 
     @classmethod
@@ -240,9 +265,54 @@ class PressurePredictor(Closes):
         )
         return cls(model, runtime, settings=settings)
 
+    # --- the rest image ---------------------------------------------------------------
+    @property
+    def rest(self) -> np.ndarray | None:
+        """The rest image in use, (S, S, 3) uint8 RGB (read-only); None before one is set
+        and for models without a rest input."""
+        return self._rest
+
+    def set_rest(self, image_or_frames: np.ndarray) -> np.ndarray:
+        """Set the rest image of a rest-referenced model: ``image_or_frames`` is one
+        (S, S, 3) uint8 RGB image of the unloaded pouch, or (K, S, S, 3) frames of it
+        averaged with :func:`~beadsight.data.rest.average_rest`. Returns the rest image
+        now in use (a read-only copy; the next reading uses it)."""
+        if not self.model.rest:
+            raise ValueError(
+                f"set_rest: checkpoint {self.model.source} is not rest-referenced (it has no "
+                "rest input)"
+            )
+        s = self.image_size
+        array = np.asarray(image_or_frames)
+        if array.ndim == 4 and array.shape[1:] == (s, s, 3) and array.dtype == np.uint8:
+            image = average_rest(array)
+        elif array.shape == (s, s, 3) and array.dtype == np.uint8:
+            image = array.copy()
+        else:
+            raise ValueError(
+                f"set_rest: expected a ({s}, {s}, 3) uint8 RGB image or (K, {s}, {s}, 3) "
+                f"uint8 RGB frames, got {array.shape} {array.dtype}"
+            )
+        image.flags.writeable = False
+        self._rest = image
+        self._first = []
+        return image
+
+    def _collect_rest(self, frame_rgb: np.ndarray) -> None:
+        """``initial_rest="first_frames"``: the first REST_FRAMES frames become the rest."""
+        self._first.append(frame_rgb.copy())
+        if len(self._first) >= REST_FRAMES:
+            self.set_rest(np.stack(self._first))
+            log.info(
+                "rest image: the first %d frames received (keep the pouch unloaded when "
+                "sensing starts, or call set_rest with frames of the unloaded pouch)",
+                REST_FRAMES,
+            )
+
     # --- state ----------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget all buffered frames and counters; the next span-1 updates return None."""
+        """Forget all buffered frames and counters; the next span-1 updates return None.
+        The rest image is kept (it belongs to the pouch, not to the stream)."""
         self._head = -1  # slot of the newest frame in [0, span)
         self._filled = 0  # valid frames in the window
         self._unseen = 0  # frames pushed since the backend last ran
@@ -253,8 +323,9 @@ class PressurePredictor(Closes):
 
     @property
     def ready(self) -> bool:
-        """True when the window holds span frames (the next update returns a reading)."""
-        return self._filled >= self.span
+        """True when the window holds span frames and, for a rest-referenced model, a rest
+        image is set (the next update returns a reading)."""
+        return self._filled >= self.span and (self._rest is not None or not self.model.rest)
 
     @property
     def frame_period_s(self) -> float:
@@ -357,6 +428,8 @@ class PressurePredictor(Closes):
         self._push(frame_rgb, t)
         self._last_time = t
         self.frame_index += 1
+        if self.model.rest and self._rest is None and self.settings.initial_rest == "first_frames":
+            self._collect_rest(frame_rgb)
 
     # --- output ---------------------------------------------------------------------
     def update(self, frame_rgb: np.ndarray, timestamp_s: float) -> PressureReading | None:
@@ -371,7 +444,7 @@ class PressurePredictor(Closes):
         if not self.ready:
             return None
         window = self._frames[:, self._head + 1 : self._head + 1 + self.span]
-        pressure = self.backend.run_incremental(window, min(self._unseen, self.span))[0]
+        pressure = self.backend.run_incremental(window, min(self._unseen, self.span), self._rest)[0]
         self._unseen = 0
         return self._reading(pressure, self._last_time, start)
 
@@ -410,7 +483,12 @@ class PressurePredictor(Closes):
     def __repr__(self) -> str:
         return (
             f"PressurePredictor({self.model.source}, backend={self.backend.describe()}, "
-            f"frames={self.frames}, span={self.span}, fps={self.fps:g}, on_gap={self.on_gap!r})"
+            f"frames={self.frames}, span={self.span}, fps={self.fps:g}, on_gap={self.on_gap!r}"
+            + (
+                f", rest {'set' if self._rest is not None else 'not set'})"
+                if self.model.rest
+                else ")"
+            )
         )
 
 

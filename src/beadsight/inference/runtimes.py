@@ -143,7 +143,7 @@ class TorchBackend(Backend):
         if rest is None:
             return None
         if self._rest is not rest and not np.array_equal(self._rest, rest):
-            x = torch.from_numpy(np.ascontiguousarray(rest)).to(self.device)[None, None]
+            x = torch.from_numpy(np.array(rest, order="C")).to(self.device)[None, None]
             self._rest_x = self.module.normalize_frames(x)  # (1, 1, 3, S, S)
         self._rest = rest
         return self._rest_x
@@ -449,7 +449,7 @@ class CudaGraphBackend(Backend):
         """Copy the (S, S, 3) rest image to the device when it changed."""
         if rest is not None and self._rest_src is not rest:
             if self._rest_src is None or not np.array_equal(self._rest_src, rest):
-                self._rest[0, 0] = torch.from_numpy(np.ascontiguousarray(rest)).to(self.device)
+                self._rest[0, 0] = torch.from_numpy(np.array(rest, order="C")).to(self.device)
             self._rest_src = rest
 
     @torch.inference_mode()

@@ -37,7 +37,7 @@ class LiveUpdate:
         reading left the predictor).
     reference_force_n: the true force if the source knows it (the simulator), else NaN.
     source_index: the frame's index in the source's stream.
-    health: the sensor's drift health (:class:`~beadsight.live.health.HealthReport`:
+    health: the sensor's drift health (:class:`~beadsight.health.monitor.HealthReport`:
         ``state``, ``message``, ``figures``), or None where it is not tracked.
     """
 

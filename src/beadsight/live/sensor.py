@@ -20,6 +20,10 @@ sensing thread: newest frame -> preprocessing ->
 sensing thread and must return quickly; the ones shipped here only copy a reference into
 their own queue and do their work (encoding, sending, writing) on their own threads.
 
+The rest reference of a rest-referenced model is taken from still frames at start-up (no
+reading until then; a stored rest, ``LiveSettings.rest_file``, serves from the first frame)
+and again whenever the pouch is unloaded and still (:mod:`beadsight.health.rest`).
+
 Faults (timings in :mod:`~beadsight.live.settings`). A camera that disappears
 (unplugged, driver error) puts the sensor in the ``no_signal`` state and is reopened with
 exponential backoff (``RECONNECT_INITIAL_S`` doubling up to ``RECONNECT_MAX_S``); a video
@@ -28,10 +32,8 @@ stops delivering frames for ``NO_SIGNAL_AFTER_S`` is ``no_signal`` until frames 
 Frames whose size does not fit the model, and a checkpoint the chosen backend refuses, are
 errors raised by :meth:`LiveSensor.start`, before any thread runs.
 
-The rest of live sensing: :mod:`~beadsight.live.settings` (:class:`LiveSettings`),
-:mod:`~beadsight.live.listeners` (what the thread produces, and who receives it),
-:mod:`~beadsight.live.stats` (rate and latency), :mod:`~beadsight.live.run`
-(``run_live``: viewer, stream, recording and reports for the command line).
+See also :mod:`~beadsight.live.settings`, :mod:`~beadsight.live.listeners` (what the
+thread produces, who receives it), :mod:`~beadsight.live.stats`, :mod:`~beadsight.live.run`.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from beadsight.checkpoint import PressureModel, shipped_model_path
+from beadsight.data.rest import RestReference, load_rest_file
 from beadsight.devices.base import (
     Camera,
     CameraDisconnectedError,
@@ -56,8 +59,9 @@ from beadsight.devices.base import (
     Frame,
 )
 from beadsight.errors import BeadSightError
+from beadsight.health.monitor import HealthReport
+from beadsight.health.watch import SensorWatch
 from beadsight.inference.predictor import PressurePredictor, PressureReading
-from beadsight.live.health import HealthReport
 from beadsight.live.listeners import (
     READING_QUEUE_SIZE,
     CallbackListener,
@@ -67,16 +71,13 @@ from beadsight.live.listeners import (
     UpdateQueue,
 )
 from beadsight.live.recorder import RecordingSlot
-from beadsight.live.rest import load_rest
 from beadsight.live.settings import LiveSettings
-from beadsight.live.sources import (
-    frame_converter,
-    open_camera,
-)
+from beadsight.live.sources import frame_converter, open_camera
 from beadsight.live.stats import LiveStats, RateMeter
-from beadsight.live.watch import SensorWatch
 
 logger = logging.getLogger(__name__)
+
+WAITING_FOR_REST = "waiting for the pouch to be unloaded and still to take the rest reference"
 
 __all__ = ["LiveSensor"]
 
@@ -143,12 +144,17 @@ class LiveSensor:
         if self.model is not None:
             return self
         settings = self.settings
-        reference = load_rest(settings.rest_file) if settings.rest_file else None
         self.predictor = PressurePredictor.from_checkpoint(
             self._checkpoint, **settings.predictor_arguments()
         )
         model = self.predictor.model
         try:
+            rest_file, reference = settings.rest_file, None
+            if rest_file:
+                reference = load_rest_file(rest_file, model.image_size)
+                logger.info("live: rest reference from %s (until the next one is taken)", rest_file)
+            if reference is not None and model.rest:
+                self.predictor.set_rest(reference.image)
             self.source = open_camera(
                 self._source_spec,
                 image_size=model.image_size,
@@ -168,7 +174,14 @@ class LiveSensor:
             self._close_source_and_predictor()
             raise
         self.model, self._first = model, first
-        self.watch = SensorWatch.for_live(settings, model.geometry.sensor_size_mm, reference)
+        if model.rest or settings.health:
+            self.watch = SensorWatch(
+                model.geometry.sensor_size_mm,
+                reference=reference,
+                health=settings.health,
+                background=True,
+                on_rest=self._new_rest,
+            )
         logger.info("live: %s, source %s", self.predictor, self.source.name)
         return self
 
@@ -177,7 +190,12 @@ class LiveSensor:
         """The newest health report (None where health is not tracked)."""
         if self.watch is None or not self.settings.health:
             return None
-        return self.watch.monitor.report
+        return self.watch.report
+
+    def _new_rest(self, rest: RestReference) -> None:
+        """A new rest reference (start-up, or the pouch unloaded and still again)."""
+        if self.model is not None and self.model.rest:
+            self.predictor.set_rest(rest.image)
 
     def start(self) -> LiveSensor:
         """:meth:`open` (if not done yet), then start the sensing thread."""
@@ -420,7 +438,7 @@ class LiveSensor:
             rgb = self._convert(frame)
             self.predictor.add_frame(rgb, frame.timestamp_s)
             if self.watch is not None:
-                self.watch.observe(rgb)
+                self.watch.observe(rgb, frame.timestamp_s)
 
     def _process(self, frame: Frame) -> None:
         """Run the model on the window ending with ``frame``; publish the reading."""
@@ -429,11 +447,15 @@ class LiveSensor:
         rgb = self._convert(frame)
         reading = self.predictor.update(rgb, frame.timestamp_s)
         if reading is None:
-            self._set_status("warming_up", f"filling the {self.model.span}-frame window")
+            waiting = self.model.rest and self.predictor.rest is None
+            filling = f"filling the {self.model.span}-frame window"
+            self._set_status("warming_up", WAITING_FOR_REST if waiting else filling)
+            if self.watch is not None:
+                self.watch.observe(rgb, frame.timestamp_s)
             return
         health = None
         if self.watch is not None:
-            reading, report = self.watch.process(rgb, reading)
+            report = self.watch.process(rgb, reading)
             health = report if self.settings.health else None
         latency = time.time() - frame.timestamp_s
         self._meter.add_reading(

@@ -22,6 +22,8 @@ FIRST_FRAME_TIMEOUT_S = 15.0  # a source that gives no frame this long after ope
 NO_SIGNAL_AFTER_S = 1.0  # no new frame for this long -> state "no_signal"
 RECONNECT_INITIAL_S = 0.5  # first wait before reopening a lost camera; doubles per try
 RECONNECT_MAX_S = 8.0  # longest wait between reopening attempts
+# a rest-referenced model reads nothing until the rest is taken from still frames (or a file)
+LIVE_PREDICTOR = PredictorSettings(initial_rest="wait")
 
 
 @dataclass(frozen=True)
@@ -37,15 +39,14 @@ class LiveSettings:
     source_fps: float | None = None  # simulator rate (None: 30) / rate asked of a camera
     loop: bool = False  # restart a video file at its end
     seed: int = 0  # the simulator's seed
-    predictor: PredictorSettings = field(default_factory=PredictorSettings)  # gaps, contact
+    predictor: PredictorSettings = field(default_factory=lambda: LIVE_PREDICTOR)  # gaps, contact
     first_frame_timeout_s: float = FIRST_FRAME_TIMEOUT_S  # no first frame this long: error
     no_signal_after_s: float = NO_SIGNAL_AFTER_S  # no new frame this long: state no_signal
     reconnect_initial_s: float = RECONNECT_INITIAL_S  # first wait before reopening a camera
     reconnect_max_s: float = RECONNECT_MAX_S  # longest wait; the wait doubles per attempt
     max_readings: int | None = None  # end sensing (state "ended") after this many readings
-    health: bool = True  # track drift health against a rest reference (live/health.py)
-    hold: bool = True  # hold the reading of a still load (live/hold.py; never erase it)
-    rest_file: str | None = None  # calibration rest reference .npz (None: taken automatically)
+    health: bool = True  # track drift health between rest states (beadsight.health)
+    rest_file: str | None = None  # a stored rest reference .npz (None: taken at start-up)
     sim_drift: str | None = None  # the simulator's drift (sim/drift.py), e.g. "settle,bump"
 
     def __post_init__(self) -> None:

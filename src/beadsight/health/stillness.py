@@ -1,4 +1,4 @@
-"""Are the frames still? Cheap frame comparison for the health monitor and the steady-load hold.
+"""Are the frames still? Cheap frame comparison for the health monitor.
 
 A frame is reduced to a :func:`thumbnail`: gray, area-averaged to :data:`STILL_GRID` x
 :data:`STILL_GRID` blocks (each a few mm of the pouch), divided by its own mean

@@ -1,0 +1,69 @@
+"""The figures of benchmarks/live_response.py and benchmarks/steady_press.py, on made-up
+readings whose answers are known."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+FPS = 30.0
+
+
+def benchmark(name: str):
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def presses(n: int = 3) -> np.ndarray:
+    """The true force of ``n`` presses: 1 s rest, 0.5 s up to 6 N, 1 s held, 0.5 s down."""
+    one = np.concatenate(
+        [np.zeros(30), np.linspace(0, 6, 15), np.full(30, 6.0), np.linspace(6, 0, 15)]
+    )
+    return np.concatenate([np.tile(one, n), np.zeros(30)])
+
+
+def test_live_response_measures_a_known_lag_error_and_latch():
+    live = benchmark("live_response")
+    true = presses()
+    t = np.arange(len(true)) / FPS
+    noise = np.random.default_rng(0).normal(0, 1e-3, len(t))  # no two readings alike
+    late = np.concatenate([np.zeros(2), true[:-2]]) + noise  # 2 frames late
+    got = live.response(t, late, true, np.full(len(t), 0.004))
+    assert got["presses"] == 3 and got["missed"] == 0
+    assert got["onset_lag_ms_median"] == pytest.approx(66.7, abs=0.1)
+    assert got["release_lag_ms_max"] == pytest.approx(66.7, abs=0.1)
+    assert got["repeated_pct"] == 0 and got["latency_ms_median"] == 4.0
+    low = live.response(t, 0.9 * true, true, np.zeros(len(t)))  # 10 % low, on time
+    assert low["force_error_pct"] == pytest.approx(10.0) and low["onset_lag_ms_max"] == 0
+    latched = late.copy()
+    latched[(true > 2) & (np.arange(len(true)) % 10 != 0)] = 5.0  # the same value again
+    assert live.response(t, latched, true, np.zeros(len(t)))["repeated_pct"] > 70
+    blip = late.copy()
+    blip[np.searchsorted(t, 3.36) : np.searchsorted(t, 3.46)] = 1.5  # at rest, before press 2
+    got = live.response(t, blip, true, np.zeros(len(t)))
+    assert got["release_lag_ms_max"] == pytest.approx(66.7, abs=0.1)  # not the blip
+    assert got["unloaded_over_1n_pct"] == pytest.approx(100 * 3 / (true == 0).sum(), abs=0.01)
+    nothing = live.response(t, np.zeros(len(t)), true, np.zeros(len(t)))
+    assert nothing["missed"] == 3 and nothing["onset_lag_ms_median"] is None
+
+
+def test_steady_press_judges_the_held_frames_and_counts_rests_under_load():
+    steady = benchmark("steady_press")
+    t = np.arange(0, 20, 1 / FPS)
+    captured = 1000 + t / 4  # frames read 4 times faster than the camera rate
+    true = np.where((t > 5) & (t < 15), 6.0, 0.0)
+    published = np.where(true > 0, 5.7, 0.0)  # 5 % low throughout
+    rows = list(zip(t, captured, published, true, ["ok"] * len(t), strict=True))
+    result = steady.judge(rows, [1000.25, 1000.5, 1004.0])
+    assert result.max_deviation_pct == pytest.approx(5.0) and result.rests_while_loaded == 0
+    assert result.seconds == pytest.approx(10 - 1.5, abs=0.1)
+    assert steady.judge(rows, [1001.3, 1003.8]).rests_while_loaded == 2  # t = 5.2 s, 15.2 s
+    assert steady.judge(rows, [1003.8 + 8 / FPS / 4]).rests_while_loaded == 0  # t = 15.47 s
