@@ -12,7 +12,7 @@ import pytest
 import torch
 from inference_helpers import stream
 
-from beadsight.checkpoint import load_checkpoint, shipped_model_path
+from beadsight.checkpoint import load_checkpoint
 from beadsight.data.rest import REST_FRAMES, average_rest, with_rest
 from beadsight.inference.parity import check_parity
 from beadsight.inference.predictor import PredictorSettings, PressurePredictor
@@ -142,13 +142,14 @@ def test_the_rest_reaches_every_runtime(rest_model, name, module):
     predictor.close()
 
 
-def test_the_shipped_checkpoint_has_no_rest_and_runs_unchanged():
-    """An old checkpoint (no rest input) loads and streams exactly as model.predict."""
-    model = load_checkpoint(shipped_model_path())
+def test_a_checkpoint_without_rest_input_loads_and_runs_unchanged(tiny_model, tmp_path):
+    """A checkpoint of a model without a rest input (every checkpoint before rest_input)
+    loads and streams exactly as model.predict, with no rest image anywhere."""
+    model = load_checkpoint(tiny_model.save(tmp_path / "old.pt"))
     assert model.rest == 0 and model.inputs == model.span
     predictor = _predictor(model)
     frames = stream(model.span + 1, size=model.image_size, seed=12)
-    for k, frame in enumerate(frames):
-        reading = predictor.update(frame, k / FPS)
+    readings = [predictor.update(frame, k / FPS) for k, frame in enumerate(frames)]
+    assert readings[: model.span - 1] == [None] * (model.span - 1)  # no wait for a rest
     assert predictor.rest is None
-    np.testing.assert_allclose(reading.pressure_kpa, model.predict(frames[1:]), atol=1e-4)
+    np.testing.assert_allclose(readings[-1].pressure_kpa, model.predict(frames[1:]), atol=1e-4)
