@@ -15,6 +15,7 @@ import json
 import random
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import h5py
@@ -80,7 +81,10 @@ def dds(tmp_path, monkeypatch):
 
 
 class Peer:
-    """tests/live/ros2_peer.py in its own process: subscribed once it prints ``ready``."""
+    """tests/live/ros2_peer.py in its own process: subscribed once it prints ``ready``.
+
+    Its output is read as it comes (a thread): a pipe left unread fills at 64 KB and
+    would stall the peer mid-run, so that it misses messages it should have seen."""
 
     def __init__(self, domain: int, namespace: str = msg.DEFAULT_NAMESPACE, *extra: str):
         self.proc = subprocess.Popen(
@@ -91,13 +95,22 @@ class Peer:
         )
         first = self.proc.stdout.readline()
         assert json.loads(first or "{}").get("ready"), self.proc.stderr.read()
+        self._lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            self._lines.append(line)
 
     def messages(self, timeout_s: float = 60) -> dict[str, list[dict]]:
         """By topic, once the peer has seen the sensor end (and exited)."""
-        out, err = self.proc.communicate(timeout=timeout_s)
+        self.proc.wait(timeout=timeout_s)
+        self._reader.join(timeout_s)
+        err = self.proc.stderr.read()
         assert self.proc.returncode == 0, err
         by_topic: dict[str, list[dict]] = {}
-        for line in out.splitlines():
+        for line in self._lines:
             m = json.loads(line)
             by_topic.setdefault(m.pop("topic"), []).append(m)
         return by_topic
