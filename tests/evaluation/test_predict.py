@@ -13,10 +13,17 @@ import pytest
 from beadsight.checkpoint import load_checkpoint
 from beadsight.cli import main
 from beadsight.data.dataset import open_dataset
-from beadsight.data.rest import REST_FRAMES, REST_MAX_FORCE_N, average_rest, rest_ends, with_rest
+from beadsight.data.rest import (
+    REST_FRAMES,
+    REST_MAX_FORCE_N,
+    RestFileError,
+    RestReference,
+    average_rest,
+    rest_ends,
+    with_rest,
+)
 from beadsight.data.windows import WindowReader
 from beadsight.evaluation.predict import PredictionError, WindowBuffer, predict_recording
-from beadsight.evaluation.rest_images import RestFileError
 from beadsight.geometry import total_force_n
 
 FPS = 30.0
@@ -230,14 +237,12 @@ def test_rest_model_on_a_video_with_a_rest_file(rest_run, tmp_path, capsys):
     data, checkpoint = rest_run
     model = load_checkpoint(checkpoint)
     video, decoded = _rest_video(data, tmp_path)
-    large = textured_frames(1, 64, 64, seed=9)[0]  # RGB, twice the model's size
-    png = tmp_path / "rest.png"
-    assert cv2.imwrite(str(png), large[..., ::-1])
+    rest = textured_frames(1, 32, 32, seed=9)[0]  # RGB, the model's size
+    png = RestReference(rest, frames=8).save(tmp_path / "rest.npz")
     out = tmp_path / "o.h5"
     argv = ["predict", "--checkpoint", checkpoint, "--input", video, "--out", out, "--rest", png]
     assert main([*map(str, argv), "--device", "cpu", "--no-progress"]) == 0
     assert "and a rest image: file" in capsys.readouterr().out
-    rest = cv2.resize(large, (32, 32), interpolation=cv2.INTER_AREA)
     n = len(decoded)
     with h5py.File(out, "r") as f:
         assert f.attrs["rest_source"] == "file" and f.attrs["rest_file"] == str(png)
@@ -274,17 +279,15 @@ def test_rest_model_on_a_dataset_uses_the_dataset_rule(rest_run, tmp_path):
 def test_bad_rest_files_are_named(rest_run, tiny_model, tmp_path, capsys):
     checkpoint = rest_run[1]
     video = write_video(tmp_path / "v.avi", textured_frames(12, 32, 32)[..., ::-1])
-    small = tmp_path / "small.png"
-    cv2.imwrite(str(small), textured_frames(1, 16, 16)[0])
-    wide = tmp_path / "wide.png"
-    cv2.imwrite(str(wide), textured_frames(1, 32, 48)[0])
-    junk = tmp_path / "junk.png"
-    junk.write_bytes(b"not an image")
+    small = RestReference(textured_frames(1, 16, 16)[0]).save(tmp_path / "small.npz")
+    wide = RestReference(textured_frames(1, 32, 48)[0]).save(tmp_path / "wide.npz")
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a rest file")
     for path, match in (
-        (small, r"rest file .*small\.png: the image is 16x16 px; .* at least 32x32 px"),
-        (wide, r"rest file .*wide\.png: the image is 48x32 px; .* square"),
-        (junk, r"rest file .*junk\.png: not an image OpenCV can read"),
-        (tmp_path / "missing.png", r"rest file .*missing\.png: not found"),
+        (small, r"rest file .*small\.npz: the image is 16x16 px but the model expects 32x32"),
+        (wide, r"rest file .*wide\.npz: the image is 48x32 px; expected a square"),
+        (junk, r"rest file .*junk\.npz: "),
+        (tmp_path / "missing.npz", r"rest file .*missing\.npz: not found"),
     ):
         with pytest.raises(RestFileError, match=match):
             predict_recording(checkpoint, video, tmp_path / "o.h5", rest=path, progress=False)
@@ -297,4 +300,4 @@ def test_bad_rest_files_are_named(rest_run, tiny_model, tmp_path, capsys):
     assert "not rest-referenced" in capsys.readouterr().err
     argv = ["predict", "--checkpoint", checkpoint, "--input", video, "--out", tmp_path / "o.h5"]
     assert main([*map(str, argv), "--rest", str(small), "--no-progress"]) == 1
-    assert "small.png: the image is 16x16 px" in capsys.readouterr().err
+    assert "small.npz: the image is 16x16 px" in capsys.readouterr().err

@@ -65,9 +65,9 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
         "--rest",
         type=Path,
         default=None,
-        help="rest-referenced models: an image (PNG) of the unloaded pouch in sensor space, at "
-        "least the model's size; default: a dataset's own rest frames, or the average of a "
-        "video's first frames",
+        help="rest-referenced models: a rest file (.npz, as `health --save-rest` and `live` "
+        "write; its image at the model's size); default: a dataset's own rest frames, or the "
+        "average of a video's first frames",
     )
     _batch_and_device(p, config.PREDICT_BATCH_SIZE)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

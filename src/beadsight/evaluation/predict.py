@@ -32,7 +32,7 @@ instead of both. ``rest_source`` says where a rest-referenced model's rest image
 from (``rest_note`` in words):
 
 * ``"file"``: ``--rest FILE``
-  (:func:`~beadsight.evaluation.rest_images.read_rest_file`; ``rest_file`` names it),
+  (:func:`~beadsight.data.rest.load_rest_file`; ``rest_file`` names it),
   for every frame;
 * ``"stream_start"`` (videos without ``--rest``): the average of the input's first
   :data:`~beadsight.data.rest.REST_FRAMES` frames, taken as the unloaded, still pouch;
@@ -284,7 +284,7 @@ def predict_recording(
     "none", "reference", "reference-linear", or a fisheye calibration .json). Dataset
     frames are already preprocessed ("auto" or "none").
     rest: for a rest-referenced model, a rest file
-    (:func:`~beadsight.evaluation.rest_images.read_rest_file`); without it
+    (:func:`~beadsight.data.rest.load_rest_file`); without it
     the rest image comes from the input (``rest_source`` in this module's docstring).
     Returns the output path; the layout is in this module's docstring.
     """

@@ -1,13 +1,12 @@
 """Where ``beadsight predict`` takes a rest-referenced model's rest images from.
 
 :func:`stream_rest` picks one :class:`StreamRest` for a run: a rest file
-(:class:`FileRest`, read by :func:`read_rest_file`), else a dataset's own rest frames
+(:class:`FileRest`, the rest file of live and health,
+:func:`beadsight.data.rest.load_rest_file`), else a dataset's own rest frames
 (:class:`DatasetRest`, the rule of training and evaluation, :mod:`beadsight.data.rest`),
 else the input's first :data:`~beadsight.data.rest.REST_FRAMES` frames
 (:class:`StreamStartRest`). ``source`` names each in the output file (``rest_source``).
 
-:func:`read_rest_file` is the one place that reads a rest file; today it takes an image
-OpenCV reads (PNG, ...), until live, health and calibrate share one rest-file format.
 """
 
 from __future__ import annotations
@@ -18,9 +17,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from beadsight.data.rest import REST_FRAMES, average_rest
+from beadsight.data.rest import REST_FRAMES, RestFileError, average_rest, load_rest_file
 from beadsight.data.windows import RestImages
-from beadsight.errors import BeadSightError
 
 if TYPE_CHECKING:
     from beadsight.checkpoint import PressureModel
@@ -32,38 +30,6 @@ REST_NONE = "none"  # rest_source: the model has no rest input
 REST_FROM_FILE = "file"  # ... a rest file (--rest FILE)
 REST_FROM_STREAM = "stream_start"  # ... the average of the input's first REST_FRAMES frames
 REST_FROM_DATASET = "dataset"  # ... each frame's rest image by the dataset rule (data.rest)
-
-
-class RestFileError(BeadSightError, ValueError):
-    """A rest file cannot give this model its rest image; the message names the file."""
-
-
-def read_rest_file(path: str | Path, image_size: int) -> np.ndarray:
-    """The rest image in ``path``: (image_size, image_size, 3) uint8 RGB.
-
-    The file is an image OpenCV reads (PNG, ...) of the unloaded pouch in sensor space
-    (like the model's input frames), square and at least ``image_size`` px (a larger one
-    is resized with INTER_AREA). RestFileError naming the file otherwise.
-    """
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise RestFileError(f"rest file {path}: not found")
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise RestFileError(f"rest file {path}: not an image OpenCV can read (PNG, ...)")
-    h, w = bgr.shape[:2]
-    if h != w or h < image_size:
-        raise RestFileError(
-            f"rest file {path}: the image is {w}x{h} px; the checkpoint needs a square rest "
-            f"image of at least {image_size}x{image_size} px (the unloaded pouch in sensor "
-            "space, like its input frames)"
-        )
-    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    if h != image_size:
-        rgb = cv2.resize(rgb, (image_size, image_size), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(rgb, dtype=np.uint8)
 
 
 class StreamRest:
@@ -80,13 +46,16 @@ class StreamRest:
 
 
 class FileRest(StreamRest):
-    """The rest image of a file (:func:`read_rest_file`), for every frame."""
+    """The rest image of a rest file (:func:`~beadsight.data.rest.load_rest_file`: the
+    .npz ``live``/``health --save-rest`` write), for every frame."""
 
     source = REST_FROM_FILE
 
     def __init__(self, path: Path, image_size: int):
         self.path = path
-        self.image = read_rest_file(path, image_size)
+        if not Path(path).is_file() and not Path(path).is_dir():
+            raise RestFileError(f"rest file {path}: not found")
+        self.image = load_rest_file(path, image_size).image
         self.note = f"the rest image of {path}, for every frame"
 
     def __call__(self, frames: np.ndarray, start: int) -> tuple[np.ndarray, np.ndarray]:
