@@ -69,12 +69,26 @@ def scored(model, data: Path, test: np.ndarray, device: str) -> dict:
 def scratch(data: Path, out: Path, n: int, base, args) -> Path:
     m = base.meta.model
     config = TrainConfig(
-        data=str(data), out=str(out), presses=n, budget_min=args.budget_min, epochs=1_000_000,
-        frames=m.frames, frame_stride=m.frame_stride, width=m.width, up_kernel=m.up_kernel,
-        image_size=base.image_size, lr=SCRATCH_LR, lr_schedule="cosine", lr_min=1e-5,
-        batch_size=16, split=CALIBRATION_SPLIT, val_every_min=0.25, device=args.device,
-        progress=False, checkpoint_every_min=1e6,
-    )  # fmt: skip
+        data=str(data),
+        out=str(out),
+        presses=n,
+        budget_min=args.budget_min,
+        epochs=1_000_000,
+        frames=m.frames,
+        frame_stride=m.frame_stride,
+        width=m.width,
+        up_kernel=m.up_kernel,
+        image_size=base.image_size,
+        lr=SCRATCH_LR,
+        lr_schedule="cosine",
+        lr_min=1e-5,
+        batch_size=16,
+        split=CALIBRATION_SPLIT,
+        val_every_min=0.25,
+        device=args.device,
+        progress=False,
+        checkpoint_every_min=1e6,
+    )
     train(config)
     return out / "best.pt"
 
@@ -86,18 +100,29 @@ def one_pouch(p: int, args, base_path: Path, save) -> dict:
     total = max(args.counts) + args.test_presses
     if not data.is_file():
         simulate_dataset(
-            data, total, seed=args.seed + p, pouches=1, variety="heldout",
-            image_size=args.image_size or base.image_size, progress=False,
-        )  # fmt: skip
+            data,
+            total,
+            seed=args.seed + p,
+            pouches=1,
+            variety="heldout",
+            image_size=args.image_size or base.image_size,
+            progress=False,
+        )
     test = np.arange(total - args.test_presses, total)
     result = {"zero-shot": scored(base, data, test, args.device), "calibrate": {}, "scratch": {}}
     save(result)
     for n in args.counts:
         t0 = time.monotonic()
         cal = CalibrateConfig(
-            data=str(data), out=str(folder / f"calibrate{n}"), base=str(base_path), presses=n,
-            budget_min=args.budget_min, overwrite=True, progress=False, device=args.device,
-        )  # fmt: skip
+            data=str(data),
+            out=str(folder / f"calibrate{n}"),
+            base=str(base_path),
+            presses=n,
+            budget_min=args.budget_min,
+            overwrite=True,
+            progress=False,
+            device=args.device,
+        )
         calibrate(cal)
         result["calibrate"][n] = scored(
             folder / f"calibrate{n}" / "model.pt", data, test, args.device
@@ -106,8 +131,11 @@ def one_pouch(p: int, args, base_path: Path, save) -> dict:
         shutil.rmtree(folder / f"scratch{n}", ignore_errors=True)  # a rerun starts afresh
         best = scratch(data, folder / f"scratch{n}", n, base, args)
         result["scratch"][n] = scored(best, data, test, args.device)
-        print(f"pouch {p}, {n} presses: calibrate {_short(result['calibrate'][n])}; "
-              f"scratch {_short(result['scratch'][n])}", flush=True)  # fmt: skip
+        print(
+            f"pouch {p}, {n} presses: calibrate {_short(result['calibrate'][n])}; "
+            f"scratch {_short(result['scratch'][n])}",
+            flush=True,
+        )
         save(result)
     return result
 
@@ -144,9 +172,11 @@ def plot(pouches: list[dict], counts: list[int], path: Path) -> None:
     axes = fig.subplots(1, 3)
     fig.subplots_adjust(left=0.07, right=0.98, bottom=0.16, top=0.9, wspace=0.35)
     for ax, key, label in zip(
-        axes, ("force_error_pct", "mae_kpa", "iou"), ("force error (%)", "MAE (kPa)", "contact IoU"),
+        axes,
+        ("force_error_pct", "mae_kpa", "iou"),
+        ("force error (%)", "MAE (kPa)", "contact IoU"),
         strict=True,
-    ):  # fmt: skip
+    ):
         for method in METHODS:
             ys = [
                 mean_over(pouches, method, None if method == "zero-shot" else n, key)
@@ -169,14 +199,21 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     print(cpu_summary())
     base_path = base_checkpoint(args.base)
-    print(f"base {base_path}; {args.pouches} held-out pouches; counts {args.counts}; "
-          f"budget {args.budget_min:g} min; {args.test_presses} test presses each", flush=True)  # fmt: skip
+    print(
+        f"base {base_path}; {args.pouches} held-out pouches; counts {args.counts}; "
+        f"budget {args.budget_min:g} min; {args.test_presses} test presses each",
+        flush=True,
+    )
     pouches: list[dict] = []
 
     def save(current: dict) -> None:
         """Write what is measured so far, so an interrupted run keeps its finished points."""
-        record = {"cpu": cpu_summary(), "args": {k: str(v) for k, v in vars(args).items()},
-                  "base": str(base_path), "pouches": [*pouches, current]}  # fmt: skip
+        record = {
+            "cpu": cpu_summary(),
+            "args": {k: str(v) for k, v in vars(args).items()},
+            "base": str(base_path),
+            "pouches": [*pouches, current],
+        }
         path = args.out / "calibration_curve.json"
         path.with_suffix(".partial").write_text(json.dumps(record, indent=2) + "\n")
         path.with_suffix(".partial").replace(path)

@@ -44,8 +44,13 @@ def make_dataset(path: Path, presses: int, geometry: SensorGeometry, seed: int =
             xy = rng.uniform(-geometry.press_range_mm, geometry.press_range_mm, 2)
             frames = rng.integers(60, 200, (FRAMES_PER_PRESS, s, s, 3), dtype=np.uint8)
             t = 1.7e9 + (p * FRAMES_PER_PRESS + np.arange(FRAMES_PER_PRESS)) / 30
-            w.append(frames, force, np.tile(xy, (FRAMES_PER_PRESS, 1)),
-                     np.ones(FRAMES_PER_PRESS, bool), t)  # fmt: skip
+            w.append(
+                frames,
+                force,
+                np.tile(xy, (FRAMES_PER_PRESS, 1)),
+                np.ones(FRAMES_PER_PRESS, bool),
+                t,
+            )
     return path
 
 
@@ -62,9 +67,12 @@ def main() -> int:
 
     geometry = SensorGeometry(image_size_px=args.image_size)
     meta = CheckpointMeta(
-        model=ModelConfig(frames=15, width=args.width), geometry=geometry,
-        pixel_mean=[128.0] * 3, pixel_std=[40.0] * 3, output_scale_kpa=10.0,
-    )  # fmt: skip
+        model=ModelConfig(frames=15, width=args.width),
+        geometry=geometry,
+        pixel_mean=[128.0] * 3,
+        pixel_std=[40.0] * 3,
+        output_scale_kpa=10.0,
+    )
     torch.manual_seed(0)
     model = PressureModel.create(meta)
     ends_per_press = FRAMES_PER_PRESS - 14
@@ -75,28 +83,43 @@ def main() -> int:
         for n in args.frames:
             tracemalloc.start()
             start = time.perf_counter()
-            metrics = evaluate(model, data, split="all", out_dir=Path(tmp) / f"eval{n}",
-                               batch_size=args.batch_size, device=args.device, max_frames=n,
-                               progress=False)  # fmt: skip
+            metrics = evaluate(
+                model,
+                data,
+                split="all",
+                out_dir=Path(tmp) / f"eval{n}",
+                batch_size=args.batch_size,
+                device=args.device,
+                max_frames=n,
+                progress=False,
+            )
             seconds = time.perf_counter() - start
             _, peak = tracemalloc.get_traced_memory()
             tracemalloc.stop()
             size = (Path(tmp) / f"eval{n}" / "predictions.h5").stat().st_size
-            results.append({
-                "frames": metrics["frames"], "seconds": round(seconds, 2),
-                "frames_per_s": round(metrics["frames"] / seconds, 1),
-                "peak_alloc_mib": round(peak / MIB, 1),
-                "predictions_h5_mib": round(size / MIB, 2), "device": metrics["device"],
-            })  # fmt: skip
+            results.append(
+                {
+                    "frames": metrics["frames"],
+                    "seconds": round(seconds, 2),
+                    "frames_per_s": round(metrics["frames"] / seconds, 1),
+                    "peak_alloc_mib": round(peak / MIB, 1),
+                    "predictions_h5_mib": round(size / MIB, 2),
+                    "device": metrics["device"],
+                }
+            )
     if args.json:
         print(json.dumps({"image_size": args.image_size, "width": args.width, "runs": results}))
     else:
-        print(f"evaluate streaming, {args.image_size}x{args.image_size} px, U-Net width "
-              f"{args.width}, batch {args.batch_size}")  # fmt: skip
+        print(
+            f"evaluate streaming, {args.image_size}x{args.image_size} px, U-Net width "
+            f"{args.width}, batch {args.batch_size}"
+        )
         for r in results:
-            print(f"  {r['frames']:6d} frames: {r['seconds']:7.2f} s  {r['frames_per_s']:7.1f} "
-                  f"frames/s  peak alloc {r['peak_alloc_mib']:7.1f} MiB  predictions.h5 "
-                  f"{r['predictions_h5_mib']:.2f} MiB  ({r['device']})")  # fmt: skip
+            print(
+                f"  {r['frames']:6d} frames: {r['seconds']:7.2f} s  {r['frames_per_s']:7.1f} "
+                f"frames/s  peak alloc {r['peak_alloc_mib']:7.1f} MiB  predictions.h5 "
+                f"{r['predictions_h5_mib']:.2f} MiB  ({r['device']})"
+            )
     return 0
 
 

@@ -100,16 +100,20 @@ def spatial_gain(data: str, eval_dir: str, train_presses: int, sigmas_mm: list[f
         return _error(_divided(pred, press, ids[test], scale), true, mask)
 
     print(f"presses 0-{train_presses - 1} fit, {n} later presses scored ({mask.sum()} frames):")
-    print(f"  no correction {error(np.ones(n)):.1f} %; "
-          f"one gain for the pouch {error(np.full(n, np.exp(log_g.mean()))):.1f} %; "
-          f"each press's own gain {error(g[test]):.1f} %")  # fmt: skip
+    print(
+        f"  no correction {error(np.ones(n)):.1f} %; "
+        f"one gain for the pouch {error(np.full(n, np.exp(log_g.mean()))):.1f} %; "
+        f"each press's own gain {error(g[test]):.1f} %"
+    )
     for sigma in sigmas_mm:
         d2 = ((xy[test, None, :] - xy[None, train, :]) ** 2).sum(-1)
         w = np.exp(-d2 / (2 * sigma**2))
         local = (w * log_g).sum(1) / np.maximum(w.sum(1), 1e-12)
         r = np.corrcoef(local, np.log(g[test]))[0, 1]
-        print(f"  gain map, kernel {sigma:g} mm: {error(np.exp(local)):.1f} % "
-              f"(correlation of mapped and actual log gain {r:.2f})")  # fmt: skip
+        print(
+            f"  gain map, kernel {sigma:g} mm: {error(np.exp(local)):.1f} % "
+            f"(correlation of mapped and actual log gain {r:.2f})"
+        )
 
 
 @torch.no_grad()

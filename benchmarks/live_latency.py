@@ -67,12 +67,22 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"model: {model.source} ({model.image_size} px, frames={model.frames}, span={model.span}); frames: {source}"
         )
-        print(f"{'backend':16s} {'max Hz':>8s} {'p50 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} "
-              f"{'@' + format(args.rate, 'g') + 'Hz':>8s} {'p99 ms':>8s} {'err %':>8s}  target")  # fmt: skip
+        print(
+            f"{'backend':16s} {'max Hz':>8s} {'p50 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} "
+            f"{'@' + format(args.rate, 'g') + 'Hz':>8s} {'p99 ms':>8s} {'err %':>8s}  target"
+        )
     for name, precision, device in rows(args.compile):
         try:
-            result = bench_live(model, name, precision, args.frames, args.rate or None, device,
-                                options, source_frames=frames)  # fmt: skip
+            result = bench_live(
+                model,
+                name,
+                precision,
+                args.frames,
+                args.rate or None,
+                device,
+                options,
+                source_frames=frames,
+            )
         except (BackendError, ImportError, RuntimeError) as e:
             if args.json:
                 print(json.dumps({"backend": f"{name}/{precision}", "skipped": str(e)}))
@@ -82,16 +92,21 @@ def main(argv: list[str] | None = None) -> int:
         d = result.to_dict()
         target = GPU_TARGET if name == "cuda" else CPU_TARGET
         s = d["sustained"] or {}
-        rate_ok = (s.get("hz") or 0) >= 0.98 * target["hz"] if name != "cuda" else (
-            d["hz"] >= target["hz"])  # fmt: skip
+        rate_ok = (
+            (s.get("hz") or 0) >= 0.98 * target["hz"]
+            if name != "cuda"
+            else (d["hz"] >= target["hz"])
+        )
         p99 = s.get("p99_ms") if name != "cuda" else d["p99_ms"]
         met = "met" if rate_ok and p99 is not None and p99 <= target["p99_ms"] else "missed"
         if args.json:
             print(json.dumps({**d, "target": target, "target_met": met == "met"}))
             continue
-        print(f"{d['backend']:16s} {d['hz']:8.1f} {d['p50_ms']:8.2f} {d['p99_ms']:8.2f} "
-              f"{d['max_ms']:8.2f} {s.get('hz') or float('nan'):8.1f} "
-              f"{s.get('p99_ms') or float('nan'):8.2f} {d['max_abs_err_pct']:8.3f}  {met}")  # fmt: skip
+        print(
+            f"{d['backend']:16s} {d['hz']:8.1f} {d['p50_ms']:8.2f} {d['p99_ms']:8.2f} "
+            f"{d['max_ms']:8.2f} {s.get('hz') or float('nan'):8.1f} "
+            f"{s.get('p99_ms') or float('nan'):8.2f} {d['max_abs_err_pct']:8.3f}  {met}"
+        )
         sys.stdout.flush()
     return 0
 

@@ -220,15 +220,19 @@ def main(argv: list[str] | None = None) -> int:
         pictures[name] = frames[0]
 
     split_of = {f: s for s, fams in LOOK_SPLITS.items() for f in fams}
-    print(f"{'look':<12} {'split':<8} {'mean RGB':<16} {'std RGB':<12} {'bead px':>7} "
-          f"{'blob px':>7} {'rim':>6}")  # fmt: skip
+    print(
+        f"{'look':<12} {'split':<8} {'mean RGB':<16} {'std RGB':<12} {'bead px':>7} "
+        f"{'blob px':>7} {'rim':>6}"
+    )
     for name, r in rows.items():
         split = split_of.get(name, "photo" if name == "real" else "default")
         mean = "/".join(f"{v:.0f}" for v in r["mean_rgb"])
         std = "/".join(f"{v:.0f}" for v in r["std_rgb"])
         bead = "-" if r["bead_px"] is None else f"{r['bead_px']:.1f}"
-        print(f"{name:<12} {split:<8} {mean:<16} {std:<12} {bead:>7} "
-              f"{r['blob_px']:>7.1f} {r['rim_contrast']:>6.3f}")  # fmt: skip
+        print(
+            f"{name:<12} {split:<8} {mean:<16} {std:<12} {bead:>7} "
+            f"{r['blob_px']:>7.1f} {r['rim_contrast']:>6.3f}"
+        )
 
     if args.image is not None:
         grid = []
@@ -236,11 +240,14 @@ def main(argv: list[str] | None = None) -> int:
             photo_name, photo = photos[k % len(photos)]
             tiles = [
                 label(cv2.resize(rest, (TILE_PX, TILE_PX), interpolation=cv2.INTER_AREA), name),
-                label(cv2.resize(pressed, (TILE_PX, TILE_PX), interpolation=cv2.INTER_AREA),
-                      "pressed"),
-                label(cv2.resize(photo, (TILE_PX, TILE_PX), interpolation=cv2.INTER_AREA),
-                      f"real: {Path(photo_name).stem}"),
-            ]  # fmt: skip
+                label(
+                    cv2.resize(pressed, (TILE_PX, TILE_PX), interpolation=cv2.INTER_AREA), "pressed"
+                ),
+                label(
+                    cv2.resize(photo, (TILE_PX, TILE_PX), interpolation=cv2.INTER_AREA),
+                    f"real: {Path(photo_name).stem}",
+                ),
+            ]
             grid.append(np.concatenate(tiles, axis=1))
         args.image.parent.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(args.image), cv2.cvtColor(np.concatenate(grid), cv2.COLOR_RGB2BGR))

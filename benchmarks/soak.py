@@ -83,16 +83,22 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"RSS at start (after {WARMUP_READINGS} readings): {start_rss:.1f} MB")
         if (k + 1) % args.block == 0 or k + 1 == args.frames:
             lat = np.asarray(latencies) * 1e3
-            blocks.append({
-                "frames_done": k + 1, "readings": len(lat),
-                "p50_ms": float(np.percentile(lat, 50)) if len(lat) else None,
-                "p99_ms": float(np.percentile(lat, 99)) if len(lat) else None,
-                "rss_mb": rss_mb(),
-            })  # fmt: skip
+            blocks.append(
+                {
+                    "frames_done": k + 1,
+                    "readings": len(lat),
+                    "p50_ms": float(np.percentile(lat, 50)) if len(lat) else None,
+                    "p99_ms": float(np.percentile(lat, 99)) if len(lat) else None,
+                    "rss_mb": rss_mb(),
+                }
+            )
             b = blocks[-1]
             if b["readings"]:
-                print(f"frames {b['frames_done']:>7d}: p50 {b['p50_ms']:7.2f} ms  "
-                      f"p99 {b['p99_ms']:7.2f} ms  RSS {b['rss_mb']:7.1f} MB", flush=True)  # fmt: skip
+                print(
+                    f"frames {b['frames_done']:>7d}: p50 {b['p50_ms']:7.2f} ms  "
+                    f"p99 {b['p99_ms']:7.2f} ms  RSS {b['rss_mb']:7.1f} MB",
+                    flush=True,
+                )
             latencies = []
     elapsed = time.perf_counter() - t0
     end_rss = rss_mb()
@@ -104,14 +110,29 @@ def main(argv: list[str] | None = None) -> int:
         float(np.median(p50s[half:]) / np.median(p50s[:half])) if half else float("nan")
     )  # later blocks vs earlier blocks: robust to a single noisy block
     print(f"RSS at end: {end_rss:.1f} MB (growth {growth:+.1f} MB; limit {MAX_RSS_GROWTH_MB} MB)")
-    print(f"latency creep: median p50 of the later / earlier half of the blocks = {creep:.2f} "
-          f"({'ok' if creep <= CREEP_LIMIT else 'CREEP'}; limit {CREEP_LIMIT})")  # fmt: skip
-    print(f"{readings} readings in {elapsed:.1f} s ({readings / elapsed:.1f} readings/s), "
-          f"dropped frames seen: {predictor.dropped_frames}")  # fmt: skip
+    print(
+        f"latency creep: median p50 of the later / earlier half of the blocks = {creep:.2f} "
+        f"({'ok' if creep <= CREEP_LIMIT else 'CREEP'}; limit {CREEP_LIMIT})"
+    )
+    print(
+        f"{readings} readings in {elapsed:.1f} s ({readings / elapsed:.1f} readings/s), "
+        f"dropped frames seen: {predictor.dropped_frames}"
+    )
     if args.json:
-        print(json.dumps({"frames": args.frames, "readings": readings, "rss_start_mb": start_rss,
-                          "rss_end_mb": end_rss, "rss_growth_mb": growth, "creep": creep,
-                          "blocks": blocks, "backend": predictor.backend.describe()}))  # fmt: skip
+        print(
+            json.dumps(
+                {
+                    "frames": args.frames,
+                    "readings": readings,
+                    "rss_start_mb": start_rss,
+                    "rss_end_mb": end_rss,
+                    "rss_growth_mb": growth,
+                    "creep": creep,
+                    "blocks": blocks,
+                    "backend": predictor.backend.describe(),
+                }
+            )
+        )
     predictor.close()
     return 0 if growth < MAX_RSS_GROWTH_MB else 1
 

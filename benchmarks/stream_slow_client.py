@@ -39,8 +39,18 @@ def run(model, rcvbuf: int, args: argparse.Namespace) -> None:
         LiveSensor(model, "sim", LiveSettings("torch", "fp32", source_fps=args.fps)) as sensor,
     ):
         sensor.add_listener(server)
-        command = [sys.executable, str(CLIENT), "--port", str(server.port), "--count",
-                   str(args.count), "--interval", str(args.interval), "--rcvbuf", str(rcvbuf)]  # fmt: skip
+        command = [
+            sys.executable,
+            str(CLIENT),
+            "--port",
+            str(server.port),
+            "--count",
+            str(args.count),
+            "--interval",
+            str(args.interval),
+            "--rcvbuf",
+            str(rcvbuf),
+        ]
         done = subprocess.run(command, capture_output=True, text=True, timeout=600)
         rate = sensor.stats().rate_hz
     if done.returncode != 0:

@@ -127,8 +127,21 @@ def viewer_screenshot(path: Path) -> int:
     if model.is_relative_to(ROOT):
         model = model.relative_to(ROOT)
     with tempfile.TemporaryDirectory() as records:
-        live = Beadsight("live", "--checkpoint", str(model), "--source", "sim", "--port", "0",
-                         "--stream-port", "0", "--record-dir", records, "--report-every", "60")  # fmt: skip
+        live = Beadsight(
+            "live",
+            "--checkpoint",
+            str(model),
+            "--source",
+            "sim",
+            "--port",
+            "0",
+            "--stream-port",
+            "0",
+            "--record-dir",
+            records,
+            "--report-every",
+            "60",
+        )
         proc = live.proc
         try:
             url = live.wait_line(r"viewer: (http://\S+)", START_TIMEOUT_S).group(1)

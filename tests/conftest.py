@@ -76,9 +76,12 @@ def probe_model() -> PressureModel:
     a session: inference tests must not change it."""
     torch.manual_seed(0)
     meta = CheckpointMeta(
-        model=ModelConfig(frames=15, width=8), geometry=TINY,
-        pixel_mean=[120.0] * 3, pixel_std=[40.0] * 3, output_scale_kpa=10.0,
-    )  # fmt: skip
+        model=ModelConfig(frames=15, width=8),
+        geometry=TINY,
+        pixel_mean=[120.0] * 3,
+        pixel_std=[40.0] * 3,
+        output_scale_kpa=10.0,
+    )
     return PressureModel.create(meta)
 
 

@@ -151,8 +151,10 @@ def test_bad_checkpoints_have_clear_errors(tmp_path, tiny_model):
         (np.zeros((15, 64, 64), np.uint8), r"expected \(span, H, W, 3\)"),
         (np.zeros((15, 64, 64, 4), np.uint8), r"expected \(span, H, W, 3\)"),
         (np.zeros((15, 64, 64, 3), np.float32), "expected dtype uint8"),
-        (np.zeros((14, 64, 64, 3), np.uint8),
-         r"window of 14 frames.*expects span=15 \(frames=15, frame_stride=1\)"),
+        (
+            np.zeros((14, 64, 64, 3), np.uint8),
+            r"window of 14 frames.*expects span=15 \(frames=15, frame_stride=1\)",
+        ),
         (np.zeros((15, 32, 32, 3), np.uint8), "32x32 px.*expects image_size=64x64"),
     ],
 )

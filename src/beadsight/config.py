@@ -117,7 +117,9 @@ class ModelConfig(_Serializable):
     width: int = 16  # channels of the first encoder block; doubled at each level
     up_kernel: int = 1  # 1 = reference weights, 3 = the paper's text
     dropout: float = 0.2  # in every conv block but the last decoder block
-    rest_input: bool = False  # rest-referenced: the network also sees the pouch at rest (+3 channels)
+    rest_input: bool = (
+        False  # rest-referenced: the network also sees the pouch at rest (+3 channels)
+    )
 
     def __post_init__(self) -> None:
         if self.frames < 1:

@@ -43,8 +43,9 @@ def test_dataset_writer_on_a_full_disk(full_disk):
 
 def test_simulate_on_a_full_disk_exits_non_zero(full_disk, capsys):
     out = full_disk / "sim.h5"
-    code = main(["simulate", "--out", str(out), "--presses", "3", "--image-size", "64",
-                 "--no-progress"])  # fmt: skip
+    code = main(
+        ["simulate", "--out", str(out), "--presses", "3", "--image-size", "64", "--no-progress"]
+    )
     assert code == 1
     err = capsys.readouterr().err
     assert "sim.h5.partial: disk full" in err and "Traceback" not in err
@@ -61,8 +62,19 @@ def test_process_on_a_full_disk_exits_non_zero(full_disk, tmp_path, capsys):
         process_recording(raw, out, config, progress=False)
     assert _leftovers(full_disk) == ["d.h5.partial"]
     (full_disk / "d.h5.partial").unlink()
-    code = main(["process", str(raw), "--out", str(out), "--image-size", "128",
-                 "--preprocess", "none", "--no-progress"])  # fmt: skip
+    code = main(
+        [
+            "process",
+            str(raw),
+            "--out",
+            str(out),
+            "--image-size",
+            "128",
+            "--preprocess",
+            "none",
+            "--no-progress",
+        ]
+    )
     assert code == 1
     assert "d.h5.partial: disk full" in capsys.readouterr().err
     assert not out.exists() and not (full_disk / "d.h5.qa.json").exists()
@@ -72,7 +84,9 @@ def test_a_finished_dataset_reads_back(tmp_path):
     """The rename happens once everything is written (and only then)."""
     out = tmp_path / "d.h5"
     with DatasetWriter(out, SensorGeometry(image_size_px=16)) as w:
-        w.append(np.zeros((3, 16, 16, 3), np.uint8), [0, 1, 0], np.zeros((3, 2)), [1, 1, 1], [0, 1, 2])
+        w.append(
+            np.zeros((3, 16, 16, 3), np.uint8), [0, 1, 0], np.zeros((3, 2)), [1, 1, 1], [0, 1, 2]
+        )
         assert not out.exists() and w.partial.exists()
     assert _leftovers(tmp_path) == ["d.h5"]
     with open_dataset(out) as ds:

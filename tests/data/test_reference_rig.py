@@ -65,8 +65,19 @@ def test_force_counter_forced_on_and_off(tmp_path, capsys):
     qa = process_recording(plain, tmp_path / "on.h5", on, progress=False)
     assert qa["force_counter"]["decoded"] and not qa["force_counter"]["detected"]
     assert qa["force_n"]["max"] == pytest.approx(9.0, abs=0.1)  # a plain log decodes to itself
-    code = main(["process", str(coded), "--out", str(tmp_path / "cli.h5"), "--image-size", "32",
-                 "--force-counter", "auto", "--no-progress"])  # fmt: skip
+    code = main(
+        [
+            "process",
+            str(coded),
+            "--out",
+            str(tmp_path / "cli.h5"),
+            "--image-size",
+            "32",
+            "--force-counter",
+            "auto",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     assert "decoded the reference sketch's +10000*i force counter" in capsys.readouterr().out
 
@@ -128,7 +139,9 @@ def test_non_finite_readings_are_reported_with_their_lines(tmp_path):
     _replace_field(raw / "force.csv", 9, 2, "inf")
     qa = process_recording(raw, tmp_path / "d.h5", SMALL, progress=False)
     text = "\n".join(qa["warnings"])
-    assert "force.csv: 2 row(s) whose field 'grams' is not a finite number skipped: lines 5, 9" in text
+    assert (
+        "force.csv: 2 row(s) whose field 'grams' is not a finite number skipped: lines 5, 9" in text
+    )
 
 
 def test_readings_beyond_capacity_are_reported_and_their_frames_invalid(tmp_path):
@@ -140,7 +153,9 @@ def test_readings_beyond_capacity_are_reported_and_their_frames_invalid(tmp_path
     _replace_field(raw / "force_log.txt", spike, 1, "9000.00")  # 88 N on a 50 N scale
     qa = process_recording(raw, tmp_path / "d.h5", SMALL, progress=False)
     warning = next(w for w in qa["warnings"] if "capacity" in w)
-    assert f"force_log.txt line {spike}: force 88.3 N is beyond the scale's capacity (50 N" in warning
+    assert (
+        f"force_log.txt line {spike}: force 88.3 N is beyond the scale's capacity (50 N" in warning
+    )
     assert qa["plausibility"]["readings_over_capacity"] == 1
     assert qa["invalid_frames"]["force_over_capacity"] >= 1
     assert qa["force_n"]["max"] < 10
@@ -182,8 +197,18 @@ def test_process_refuses_to_overwrite(tmp_path, capsys):
     code = main(["process", str(raw), "--out", str(other), "--no-progress"])
     assert code == 1 and "already exists" in capsys.readouterr().err
     assert other.read_text() == "keep me"
-    code = main(["process", str(raw), "--out", str(other), "--image-size", "32",
-                 "--overwrite", "--no-progress"])  # fmt: skip
+    code = main(
+        [
+            "process",
+            str(raw),
+            "--out",
+            str(other),
+            "--image-size",
+            "32",
+            "--overwrite",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     with open_dataset(other) as ds:
         assert ds.image_size == 32

@@ -52,8 +52,23 @@ def test_coverage_in_metrics_json_and_printed(make_dataset, tiny_model, tmp_path
     data = make_dataset(presses=6, frames_per_press=40)
     model = tiny_model.save(tmp_path / "m.pt")
     out = tmp_path / "eval"
-    code = main(["evaluate", "--checkpoint", str(model), "--data", str(data), "--split", "all",
-                 "--out", str(out), "--device", "cpu", "--no-plots", "--no-progress"])  # fmt: skip
+    code = main(
+        [
+            "evaluate",
+            "--checkpoint",
+            str(model),
+            "--data",
+            str(data),
+            "--split",
+            "all",
+            "--out",
+            str(out),
+            "--device",
+            "cpu",
+            "--no-plots",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["coverage"] == pytest.approx((240 - 14) / 240)
@@ -94,8 +109,11 @@ def test_training_on_presses_shorter_than_the_window(make_dataset, tmp_path):
     """Item 7, training: 10-frame presses and a 15-frame window (before: 'no training
     window fits')."""
     data = make_dataset(presses=8, frames_per_press=10)
-    run = train(TrainConfig(data=str(data), out=str(tmp_path / "run"), width=8, steps=2,
-                            batch_size=4, device="cpu"))  # fmt: skip
+    run = train(
+        TrainConfig(
+            data=str(data), out=str(tmp_path / "run"), width=8, steps=2, batch_size=4, device="cpu"
+        )
+    )
     split = json.loads((run / "split.json").read_text())
     assert split["windows"]["train"] > 0
     assert (run / "last.pt").is_file()
@@ -142,9 +160,24 @@ def test_reference_checkpoint_is_scored_on_its_own_test_frames(reference_setup, 
     assert metrics["frames"] == len(ckpt["test_indices"]) == metrics["valid_frames"]
     assert metrics["presses"] == 2 and metrics["coverage"] == 1.0
     out = ref_file.parent / "eval"
-    code = main(["evaluate", "--checkpoint", str(ckpt_path), "--data", str(ref_file),
-                 "--split", "test", "--out", str(out), "--device", "cpu", "--no-plots",
-                 "--no-progress", "--baselines"])  # fmt: skip
+    code = main(
+        [
+            "evaluate",
+            "--checkpoint",
+            str(ckpt_path),
+            "--data",
+            str(ref_file),
+            "--split",
+            "test",
+            "--out",
+            str(out),
+            "--device",
+            "cpu",
+            "--no-plots",
+            "--no-progress",
+            "--baselines",
+        ]
+    )
     assert code == 0
     assert "test split (reference checkpoint test_indices)" in capsys.readouterr().out
     with open(out / "metrics.json") as f:
@@ -157,8 +190,11 @@ def test_reference_split_is_refused_on_another_dataset(reference_setup, make_dat
     model = load_checkpoint(ckpt_path)
     renamed = ref_file.with_name("some_other_hour.hdf5")
     renamed.write_bytes(ref_file.read_bytes())
-    with pytest.raises(EvaluationError, match=r"--split test refused .* are frames of "
-                       r"/home/someone/data/hours_1_to_2\.hdf5, not of some_other_hour"):  # fmt: skip
+    with pytest.raises(
+        EvaluationError,
+        match=r"--split test refused .* are frames of "
+        r"/home/someone/data/hours_1_to_2\.hdf5, not of some_other_hour",
+    ):
         evaluate(model, renamed, split="test", device="cpu", progress=False)
     short = make_dataset(presses=2, frames_per_press=40, name="other/hours_1_to_2.hdf5")
     with pytest.raises(EvaluationError, match=r"reach frame \d+, and .* has 80 frames"):

@@ -57,11 +57,25 @@ def test_cli_evaluate_end_to_end(make_dataset, model_file, tmp_path, capsys):
     out = tmp_path / "eval"
     code = main(
         [
-            "evaluate", "--checkpoint", str(model_file), "--data", str(data), "--split", "all",
-            "--out", str(out), "--batch-size", "16", "--device", "cpu", "--max-frames", "60",
-            "--baselines", "--no-progress",
+            "evaluate",
+            "--checkpoint",
+            str(model_file),
+            "--data",
+            str(data),
+            "--split",
+            "all",
+            "--out",
+            str(out),
+            "--batch-size",
+            "16",
+            "--device",
+            "cpu",
+            "--max-frames",
+            "60",
+            "--baselines",
+            "--no-progress",
         ]
-    )  # fmt: skip
+    )
     assert code == 0
     captured = capsys.readouterr()
     assert "frame/s" not in captured.err  # --no-progress: no bar in a script's log
@@ -121,8 +135,10 @@ def test_evaluate_uses_checkpoint_split(make_dataset, tiny_model, caplog):
     # meta.training as beadsight.train.trainer writes it
     tiny_model.meta.training.update(
         split={"train": [0, 1, 2, 3], "val": [4], "test": [5]},
-        dataset_fingerprint=fingerprint, split_fractions=[0.7, 0.1, 0.2], split_seed=0,
-    )  # fmt: skip
+        dataset_fingerprint=fingerprint,
+        split_fractions=[0.7, 0.1, 0.2],
+        split_seed=0,
+    )
     with caplog.at_level(logging.WARNING, logger="beadsight.evaluation.evaluate"):
         metrics = evaluate(tiny_model, data, split="test", device="cpu", progress=False)
     assert not caplog.records
@@ -142,9 +158,13 @@ def test_split_recomputed_with_warning(make_dataset, tiny_model, caplog):
         np.testing.assert_array_equal(sel.press_ids, split_presses(6)["test"])
         # A split made for another dataset is not trusted.
         tiny_model.meta.training["split"] = {
-            "train": list(range(8)), "val": [8], "test": [9], "num_presses": 10,
-            "fractions": [0.5, 0.25, 0.25], "seed": 3,
-        }  # fmt: skip
+            "train": list(range(8)),
+            "val": [8],
+            "test": [9],
+            "num_presses": 10,
+            "fractions": [0.5, 0.25, 0.25],
+            "seed": 3,
+        }
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="beadsight.evaluation.evaluate"):
             sel = select_split(tiny_model, ds, "val")
@@ -153,9 +173,11 @@ def test_split_recomputed_with_warning(make_dataset, tiny_model, caplog):
         # Same number of presses, but another dataset's fingerprint.
         tiny_model.meta.training.update(
             split={"train": [0, 1, 2, 3], "val": [4], "test": [5]},
-            dataset_fingerprint="0123456789abcdef", dataset_path="/data/other.h5",
-            split_fractions=[0.5, 0.25, 0.25], split_seed=1,
-        )  # fmt: skip
+            dataset_fingerprint="0123456789abcdef",
+            dataset_path="/data/other.h5",
+            split_fractions=[0.5, 0.25, 0.25],
+            split_seed=1,
+        )
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="beadsight.evaluation.evaluate"):
             sel = select_split(tiny_model, ds, "test")
@@ -183,8 +205,19 @@ def test_window_mismatch(make_dataset, model_file, tmp_path, capsys):
     with pytest.raises(EvaluationError, match="needs 15 consecutive valid frames") as err:
         evaluate(model_file, data, split="all", device="cpu", progress=False)
     assert str(model_file) in str(err.value) and str(data) in str(err.value)
-    code = main(["evaluate", "--checkpoint", str(model_file), "--data", str(data),
-                 "--split", "all", "--out", str(tmp_path / "e")])  # fmt: skip
+    code = main(
+        [
+            "evaluate",
+            "--checkpoint",
+            str(model_file),
+            "--data",
+            str(data),
+            "--split",
+            "all",
+            "--out",
+            str(tmp_path / "e"),
+        ]
+    )
     assert code == 1
     assert "window" in capsys.readouterr().err
     assert not (tmp_path / "e" / "metrics.json").exists()
@@ -222,16 +255,28 @@ def test_resize_to_checkpoint_size(make_dataset, tmp_path):
     """A checkpoint trained at 32 px (train --image-size 32) on 64 px data, with --resize."""
     torch.manual_seed(0)
     meta = CheckpointMeta(
-        model=ModelConfig(frames=15, width=8), geometry=SensorGeometry(image_size_px=32),
-        pixel_mean=[120.0] * 3, pixel_std=[40.0] * 3, output_scale_kpa=10.0,
-    )  # fmt: skip
+        model=ModelConfig(frames=15, width=8),
+        geometry=SensorGeometry(image_size_px=32),
+        pixel_mean=[120.0] * 3,
+        pixel_std=[40.0] * 3,
+        output_scale_kpa=10.0,
+    )
     model = PressureModel.create(meta)
     data = make_dataset(presses=3, frames_per_press=30)
     with pytest.raises(EvaluationError, match="--resize"):
         evaluate(model, data, split="all", device="cpu", progress=False)
     out = tmp_path / "e"
-    metrics = evaluate(model, data, split="all", out_dir=out, device="cpu", resize=True,
-                       max_frames=20, plots=False, progress=False)  # fmt: skip
+    metrics = evaluate(
+        model,
+        data,
+        split="all",
+        out_dir=out,
+        device="cpu",
+        resize=True,
+        max_frames=20,
+        plots=False,
+        progress=False,
+    )
     assert metrics["image_size"] == 32 and metrics["frames"] == 20
     with open_dataset(data) as ds, h5py.File(out / "predictions.h5", "r") as f:
         assert f["pred_kpa"].shape == (20, 32, 32)

@@ -77,8 +77,9 @@ def check_layout(f: h5py.File, n: int, size: int = 64, window: int = 15) -> None
 
 def test_predict_dataset(make_dataset, tiny_model, tmp_path):
     data = make_dataset(presses=2, frames_per_press=20)
-    out = predict_recording(tiny_model, data, tmp_path / "pred.h5", device="cpu",
-                            batch_size=8, progress=False)  # fmt: skip
+    out = predict_recording(
+        tiny_model, data, tmp_path / "pred.h5", device="cpu", batch_size=8, progress=False
+    )
     assert out == tmp_path / "pred.h5"
     with open_dataset(data) as ds, h5py.File(out, "r") as f:
         check_layout(f, len(ds))
@@ -99,8 +100,22 @@ def test_cli_predict_video(tiny_model, tmp_path, capsys):
     n = 24
     video = write_video(tmp_path / "clip.avi", textured_frames(n, 64, 64)[..., ::-1])
     out = tmp_path / "clip_pred.h5"
-    code = main(["predict", "--checkpoint", str(model_file), "--input", str(video),
-                 "--out", str(out), "--device", "cpu", "--batch-size", "4", "--no-progress"])  # fmt: skip
+    code = main(
+        [
+            "predict",
+            "--checkpoint",
+            str(model_file),
+            "--input",
+            str(video),
+            "--out",
+            str(out),
+            "--device",
+            "cpu",
+            "--batch-size",
+            "4",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     captured = capsys.readouterr()
     assert f"{n} frames ({n - 14} with a full window)" in captured.out
@@ -122,8 +137,14 @@ def test_video_needs_preprocessing(tiny_model, tmp_path, preprocess):
     height) are refused unless a preprocessing is named: the rule live sensing follows."""
     video = write_video(tmp_path / "raw.avi", textured_frames(16, 80, 100))
     with pytest.raises(PredictionError, match="raw.avi delivers 100x80 frames.*64x64"):
-        predict_recording(tiny_model, video, tmp_path / "o.h5", preprocess=preprocess,
-                          device="cpu", progress=False)  # fmt: skip
+        predict_recording(
+            tiny_model,
+            video,
+            tmp_path / "o.h5",
+            preprocess=preprocess,
+            device="cpu",
+            progress=False,
+        )
     assert not (tmp_path / "o.h5").exists() and not list(tmp_path.glob("*.partial"))
 
 
@@ -132,8 +153,9 @@ def test_video_reference_preprocessing(tiny_model, tmp_path):
 
     n = 16
     video = write_video(tmp_path / "raw.avi", textured_frames(n, 80, 100))
-    out = predict_recording(tiny_model, video, tmp_path / "o.h5", preprocess="reference",
-                            device="cpu", progress=False)  # fmt: skip
+    out = predict_recording(
+        tiny_model, video, tmp_path / "o.h5", preprocess="reference", device="cpu", progress=False
+    )
     pre = Preprocessor.reference(input_hw=(80, 100), output_size=64)
     cap = cv2.VideoCapture(str(video))
     frames = np.stack([pre(cap.read()[1]) for _ in range(n)])
@@ -157,8 +179,9 @@ def test_bad_inputs(tiny_model, make_dataset, tmp_path):
         predict_recording(tiny_model, small, tmp_path / "o.h5", progress=False)
     data = make_dataset(presses=2, frames_per_press=20)
     with pytest.raises(PredictionError, match="--preprocess reference"):
-        predict_recording(tiny_model, data, tmp_path / "o.h5", preprocess="reference",
-                          progress=False)  # fmt: skip
+        predict_recording(
+            tiny_model, data, tmp_path / "o.h5", preprocess="reference", progress=False
+        )
     with pytest.raises(PredictionError, match="overwrite the input"):
         predict_recording(tiny_model, data, data, progress=False)
     with pytest.raises(PredictionError, match="--batch-size"):

@@ -61,8 +61,14 @@ def _report(**changes) -> Report:
     fields = dict(
         title="Eval <script>alert('title')</script>",
         summary="Model & data <i>summary</i>",
-        metrics={"mae_kpa": 0.5, "force_error_pct": 11.9, "cop_error_mm": None, "iou": 0.5,
-                 "worst_region_mae_kpa": 2.0, "frames": 12},  # fmt: skip
+        metrics={
+            "mae_kpa": 0.5,
+            "force_error_pct": 11.9,
+            "cop_error_mm": None,
+            "iou": 0.5,
+            "worst_region_mae_kpa": 2.0,
+            "frames": 12,
+        },
         baselines={"zero": {"mae_kpa": 3.0, "iou": 0.0, "frames": 12}},
         notes=["a <note>"],
         figures=[Figure("plots/a b.png", "A <figure>", "x in mm <b>bold</b>")],
@@ -116,10 +122,17 @@ def test_metrics_are_marked_against_the_paper():
     assert "n/a" in "".join(page.text["td"])
     zero = [c["class"] for c in cells if c.get("class", "").startswith("baseline")]
     assert zero[0] == "baseline worse" and zero[3] == "baseline worse"
-    assert compare_with_paper("iou", 0.9) == "better" and compare_with_paper("mae_kpa", 0.9) == "worse"
+    assert (
+        compare_with_paper("iou", 0.9) == "better" and compare_with_paper("mae_kpa", 0.9) == "worse"
+    )
     assert compare_with_paper("frames", 3) is None and compare_with_paper("iou", None) is None
-    assert set(PAPER_METRICS) <= {"mae_kpa", "force_error_pct", "cop_error_mm", "iou",
-                                  "worst_region_mae_kpa"}  # fmt: skip
+    assert set(PAPER_METRICS) <= {
+        "mae_kpa",
+        "force_error_pct",
+        "cop_error_mm",
+        "iou",
+        "worst_region_mae_kpa",
+    }
 
 
 def test_a_report_without_metrics_or_card():
@@ -143,9 +156,23 @@ def test_evaluate_writes_the_report(make_dataset, tiny_model, tmp_path):
     checkpoint = tiny_model.save(tmp_path / "tiny.pt")
     (tmp_path / "tiny.md").write_text(HOSTILE_CARD)  # the checkpoint's model card
     out = tmp_path / "eval"
-    argv = ["evaluate", "--checkpoint", str(checkpoint), "--data", str(data), "--split", "all",
-            "--out", str(out), "--device", "cpu", "--max-frames", "30", "--baselines",
-            "--no-progress"]  # fmt: skip
+    argv = [
+        "evaluate",
+        "--checkpoint",
+        str(checkpoint),
+        "--data",
+        str(data),
+        "--split",
+        "all",
+        "--out",
+        str(out),
+        "--device",
+        "cpu",
+        "--max-frames",
+        "30",
+        "--baselines",
+        "--no-progress",
+    ]
     assert main(argv) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["files"]["report"] == "index.html"

@@ -44,14 +44,42 @@ def reports(shipped, tmp_path_factory):
     """{"demo": folder, "evaluate": folder}: the demo, then evaluate on the demo's data."""
     root = tmp_path_factory.mktemp("reports")
     demo = root / "demo"
-    argv = ["demo", "--checkpoint", str(shipped), "--out", str(demo), "--presses", "3",
-            "--max-frames", "90", "--animation-frames", "16", "--keep-data", "--device", "cpu",
-            "--no-progress"]  # fmt: skip
+    argv = [
+        "demo",
+        "--checkpoint",
+        str(shipped),
+        "--out",
+        str(demo),
+        "--presses",
+        "3",
+        "--max-frames",
+        "90",
+        "--animation-frames",
+        "16",
+        "--keep-data",
+        "--device",
+        "cpu",
+        "--no-progress",
+    ]
     assert main(argv) == 0
     evaluation = root / "evaluate"
-    argv = ["evaluate", "--checkpoint", str(shipped), "--data", str(demo / "heldout.h5"),
-            "--split", "all", "--out", str(evaluation), "--max-frames", "60", "--baselines",
-            "--device", "cpu", "--no-progress"]  # fmt: skip
+    argv = [
+        "evaluate",
+        "--checkpoint",
+        str(shipped),
+        "--data",
+        str(demo / "heldout.h5"),
+        "--split",
+        "all",
+        "--out",
+        str(evaluation),
+        "--max-frames",
+        "60",
+        "--baselines",
+        "--device",
+        "cpu",
+        "--no-progress",
+    ]
     assert main(argv) == 0
     return {"demo": demo, "evaluate": evaluation}
 

@@ -23,8 +23,18 @@ def test_predict_on_a_full_disk_exits_non_zero_and_leaves_no_file(
     data = make_dataset(presses=6, frames_per_press=40)  # 240 maps of 64x64 float32: ~4 MB
     checkpoint = tiny_model.save(tmp_path / "tiny.pt")
     out = full_disk / "pressure.h5"
-    argv = ["predict", "--checkpoint", str(checkpoint), "--input", str(data), "--out", str(out),
-            "--device", "cpu", "--no-progress"]  # fmt: skip
+    argv = [
+        "predict",
+        "--checkpoint",
+        str(checkpoint),
+        "--input",
+        str(data),
+        "--out",
+        str(out),
+        "--device",
+        "cpu",
+        "--no-progress",
+    ]
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert f"could not write {out}" in err and "disk full" in err
@@ -43,14 +53,29 @@ def test_predict_write_error_keeps_an_earlier_result(make_dataset, tiny_model, f
     assert _leftovers(full_disk) == []
 
 
-def test_evaluate_on_a_full_disk_exits_non_zero(make_dataset, tiny_model, tmp_path, full_disk,
-                                                capsys):  # fmt: skip
+def test_evaluate_on_a_full_disk_exits_non_zero(
+    make_dataset, tiny_model, tmp_path, full_disk, capsys
+):
     data = make_dataset(presses=6, frames_per_press=40)
     checkpoint = tiny_model.save(tmp_path / "tiny.pt")
     out = full_disk / "eval"
-    argv = ["evaluate", "--checkpoint", str(checkpoint), "--data", str(data), "--split", "all",
-            "--out", str(out), "--device", "cpu", "--batch-size", "2", "--baselines",
-            "--no-progress"]  # fmt: skip
+    argv = [
+        "evaluate",
+        "--checkpoint",
+        str(checkpoint),
+        "--data",
+        str(data),
+        "--split",
+        "all",
+        "--out",
+        str(out),
+        "--device",
+        "cpu",
+        "--batch-size",
+        "2",
+        "--baselines",
+        "--no-progress",
+    ]
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert "could not write" in err and "predictions.h5" in err and "disk full" in err
@@ -63,8 +88,16 @@ def test_evaluate_full_disk_after_the_predictions(make_dataset, tiny_model, full
     data = make_dataset(presses=6, frames_per_press=40)
     out = full_disk / "eval"
     with pytest.raises(WriteError, match="disk full"):
-        evaluate(tiny_model, data, split="all", out_dir=out, device="cpu", max_frames=3,
-                 baselines=True, progress=False)  # fmt: skip
+        evaluate(
+            tiny_model,
+            data,
+            split="all",
+            out_dir=out,
+            device="cpu",
+            max_frames=3,
+            baselines=True,
+            progress=False,
+        )
     assert (out / "predictions.h5").is_file()  # 3 frames fit
     with h5py.File(out / "predictions.h5", "r") as f:
         assert f["pred_kpa"].shape == (3, 64, 64)

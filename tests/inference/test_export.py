@@ -143,18 +143,54 @@ def test_bad_export_requests(tiny_model, tmp_path):
 
 def test_cli_export(checkpoint, tmp_path, capsys):
     out = tmp_path / "cli.onnx"
-    assert main(["export", "--checkpoint", str(checkpoint), "--format", "onnx",
-                 "--out", str(out), "--json"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "export",
+                "--checkpoint",
+                str(checkpoint),
+                "--format",
+                "onnx",
+                "--out",
+                str(out),
+                "--json",
+            ]
+        )
+        == 0
+    )
     report = json.loads(capsys.readouterr().out)
     assert report["path"] == str(out) and report["max_abs_err_kpa"] <= 1e-4
-    assert main(["export", "--checkpoint", str(tmp_path / "nope.pt"), "--format", "onnx",
-                 "--out", str(out)]) == 1  # fmt: skip
+    assert (
+        main(
+            [
+                "export",
+                "--checkpoint",
+                str(tmp_path / "nope.pt"),
+                "--format",
+                "onnx",
+                "--out",
+                str(out),
+            ]
+        )
+        == 1
+    )
     assert "nope.pt" in capsys.readouterr().err
 
 
 def test_cli_bench_live_json(checkpoint, tmp_path, capsys):
-    code = main(["bench", "live", "--checkpoint", str(checkpoint), "--json", "--frames", "60",
-                 "--cache-dir", str(tmp_path / "cache")])  # fmt: skip
+    code = main(
+        [
+            "bench",
+            "live",
+            "--checkpoint",
+            str(checkpoint),
+            "--json",
+            "--frames",
+            "60",
+            "--cache-dir",
+            str(tmp_path / "cache"),
+        ]
+    )
     assert code == 0
     result = json.loads(capsys.readouterr().out)
     for key in ("hz", "p50_ms", "p99_ms", "max_ms", "max_abs_err_pct", "backend"):

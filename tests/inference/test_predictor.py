@@ -300,10 +300,13 @@ def test_model_from_checkpoint_path(tiny_model, tmp_path):
 
 def test_predictor_with_other_frame_count(tiny_model):
     meta = CheckpointMeta(
-        model=ModelConfig(frames=4, width=8), geometry=tiny_model.geometry,
-        pixel_mean=[100.0] * 3, pixel_std=[50.0] * 3, channel_order="BGR",
+        model=ModelConfig(frames=4, width=8),
+        geometry=tiny_model.geometry,
+        pixel_mean=[100.0] * 3,
+        pixel_std=[50.0] * 3,
+        channel_order="BGR",
         output_scale_kpa=3.0,
-    )  # fmt: skip
+    )
     model = PressureModel.create(meta)
     predictor = _predictor(model)
     frames = _frames(6)

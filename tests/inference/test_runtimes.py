@@ -60,9 +60,11 @@ def test_backend_agrees_with_torch(probe_model, name, precision, module):
     # a second window gives a different answer (the backend is not replaying a cache)
     other = stream(T, seed=7)[None]
     np.testing.assert_allclose(
-        backend.run(other)[0], probe_model.predict(other[0]),
-        atol=5 * PARITY_TOLERANCE.tolerance_kpa(parity.peak_kpa), rtol=0,
-    )  # fmt: skip
+        backend.run(other)[0],
+        probe_model.predict(other[0]),
+        atol=5 * PARITY_TOLERANCE.tolerance_kpa(parity.peak_kpa),
+        rtol=0,
+    )
     backend.close()
 
 
@@ -114,8 +116,9 @@ def test_device_ring_logic_on_cpu(probe_model, strided_model):
     _incremental_matches_run(strided, strided_model, stream(strided_model.span + 32))
     np.testing.assert_allclose(
         backend.run(probe_window(probe_model))[0],
-        probe_model.predict(probe_window(probe_model)[0]), atol=1e-5,
-    )  # fmt: skip
+        probe_model.predict(probe_window(probe_model)[0]),
+        atol=1e-5,
+    )
 
 
 @pytest.mark.gpu

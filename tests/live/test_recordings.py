@@ -154,9 +154,26 @@ class _Reading:
 def test_cli_live_output_on_a_full_disk_exits_non_zero(model, full_disk, tmp_path):
     checkpoint = model.save(tmp_path / "tiny.pt")
     out = full_disk / "readings.h5"
-    command = [sys.executable, "-m", "beadsight", "live", "--checkpoint", str(checkpoint),
-               "--source", "sim", "--backend", "torch", "--precision", "fp32", "--no-viewer",
-               "--no-stream", "--output", str(out), "--duration", "60"]  # fmt: skip
+    command = [
+        sys.executable,
+        "-m",
+        "beadsight",
+        "live",
+        "--checkpoint",
+        str(checkpoint),
+        "--source",
+        "sim",
+        "--backend",
+        "torch",
+        "--precision",
+        "fp32",
+        "--no-viewer",
+        "--no-stream",
+        "--output",
+        str(out),
+        "--duration",
+        "60",
+    ]
     start = time.monotonic()
     done = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert done.returncode == 1, (done.stdout, done.stderr)
@@ -210,9 +227,23 @@ def test_cli_live_output_refuses_an_existing_dataset(model, make_dataset, tmp_pa
     dataset = make_dataset()
     before = _digest(dataset)
     checkpoint = model.save(tmp_path / "tiny.pt")
-    command = ["live", "--checkpoint", str(checkpoint), "--source", "sim", "--backend", "torch",
-               "--precision", "fp32", "--no-viewer", "--no-stream", "--frames", "3",
-               "--output", str(dataset)]  # fmt: skip
+    command = [
+        "live",
+        "--checkpoint",
+        str(checkpoint),
+        "--source",
+        "sim",
+        "--backend",
+        "torch",
+        "--precision",
+        "fp32",
+        "--no-viewer",
+        "--no-stream",
+        "--frames",
+        "3",
+        "--output",
+        str(dataset),
+    ]
     assert main(command) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(dataset) in err[0] and "--overwrite" in err[0]

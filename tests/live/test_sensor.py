@@ -450,10 +450,24 @@ def test_cli_live_sim_headless_straight_to_mcap(model, tmp_path, capsys):
     checkpoint = model.save(tmp_path / "tiny.pt")
     out = tmp_path / "sim.mcap"
     code = main(
-        ["live", "--checkpoint", str(checkpoint), "--source", "sim", "--backend", "torch",
-         "--precision", "fp32", "--no-viewer", "--no-stream", "--output", str(out),
-         "--frames", "4"]
-    )  # fmt: skip
+        [
+            "live",
+            "--checkpoint",
+            str(checkpoint),
+            "--source",
+            "sim",
+            "--backend",
+            "torch",
+            "--precision",
+            "fp32",
+            "--no-viewer",
+            "--no-stream",
+            "--output",
+            str(out),
+            "--frames",
+            "4",
+        ]
+    )
     assert code == 0
     printed = capsys.readouterr().out
     assert f"wrote {out}" in printed and "final: " in printed

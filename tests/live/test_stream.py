@@ -168,8 +168,16 @@ def test_slow_client_gets_fresh_readings_and_counts_the_skipped(model):
         LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,
     ):
         sensor.add_listener(server)
-        command = [sys.executable, str(CLIENT), "--port", str(server.port), "--count", "40",
-                   "--interval", str(interval_s)]  # fmt: skip
+        command = [
+            sys.executable,
+            str(CLIENT),
+            "--port",
+            str(server.port),
+            "--count",
+            "40",
+            "--interval",
+            str(interval_s),
+        ]
         done = subprocess.run(command, capture_output=True, text=True, timeout=120)
         rate = sensor.stats().rate_hz
     assert done.returncode == 0, done.stderr

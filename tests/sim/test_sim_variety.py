@@ -300,9 +300,14 @@ def test_variety_session_swaps_builds_and_keeps_the_plain_session_unchanged():
 
 def test_variety_dataset_records_its_builds(tmp_path):
     out = simulate_dataset(
-        tmp_path / "v.h5", presses=3, seed=4, image_size=32, pouches=3, variety="heldout",
+        tmp_path / "v.h5",
+        presses=3,
+        seed=4,
+        image_size=32,
+        pouches=3,
+        variety="heldout",
         progress=False,
-    )  # fmt: skip
+    )
     with open_dataset(out) as ds:
         record = ds.provenance["simulator"]["variety"]
     assert record["split"] == "heldout" and record["factor_names"] == list(FACTOR_NAMES)
@@ -341,9 +346,14 @@ def test_training_on_a_variety_dataset_resumes_where_it_stopped(tmp_path):
     from beadsight.checkpoint import read_checkpoint_file
 
     data = simulate_dataset(
-        tmp_path / "v.h5", presses=3, seed=6, image_size=32, pouches=3, variety="train",
+        tmp_path / "v.h5",
+        presses=3,
+        seed=6,
+        image_size=32,
+        pouches=3,
+        variety="train",
         progress=False,
-    )  # fmt: skip
+    )
     small = ["--width", "2", "--batch-size", "4", "--threads", "1", "--no-progress"]
     small += ["--device", "cpu", "--loader", "host", "--num-workers", "0"]
 

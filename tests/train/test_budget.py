@@ -27,9 +27,15 @@ def test_budget_stops_the_run_and_the_schedule_spans_it(make_dataset, tmp_path):
     run = tmp_path / "run"
     t0 = time.monotonic()
     config = TrainConfig(
-        data=str(data), out=str(run), epochs=10_000, budget_min=0.1, val_every_min=0.03,
-        lr=1e-3, lr_schedule="cosine", **FAST,
-    )  # fmt: skip
+        data=str(data),
+        out=str(run),
+        epochs=10_000,
+        budget_min=0.1,
+        val_every_min=0.03,
+        lr=1e-3,
+        lr_schedule="cosine",
+        **FAST,
+    )
     train(config)
     took = time.monotonic() - t0
     assert took < 0.1 * 60 + 20  # the budget, plus setup and the last step and validation
@@ -48,9 +54,16 @@ def test_presses_skip_and_decoder_only(make_dataset, tmp_path):
     init = first / "best.pt"
     run = tmp_path / "run"
     config = TrainConfig(
-        data=str(data), out=str(run), steps=3, presses=4, skip_presses=2, init=str(init),
-        train_layers="decoder", augment=False, **FAST,
-    )  # fmt: skip
+        data=str(data),
+        out=str(run),
+        steps=3,
+        presses=4,
+        skip_presses=2,
+        init=str(init),
+        train_layers="decoder",
+        augment=False,
+        **FAST,
+    )
     train(config)
     split = json.loads((run / "split.json").read_text())
     used = sorted(split["train"] + split["val"] + split["test"])

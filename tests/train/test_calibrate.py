@@ -79,9 +79,16 @@ def test_calibrate_a_reference_layout_file_with_rest_frames_and_gain(make_datase
     reference = export_reference(ours, tmp_path / "reference.h5")  # BGR, grams, no presses
     rest = _rest_file(tmp_path / "rest.h5", frames=30, level=90)
     config = CalibrateConfig(
-        data=str(reference), out=str(tmp_path / "cal"), base=str(base), budget_min=0.1,
-        rest=str(rest), gain=True, layers="decoder", skip=1, progress=False,
-    )  # fmt: skip
+        data=str(reference),
+        out=str(tmp_path / "cal"),
+        base=str(base),
+        budget_min=0.1,
+        rest=str(rest),
+        gain=True,
+        layers="decoder",
+        skip=1,
+        progress=False,
+    )
     metrics = calibrate(config)
     record = metrics["calibration"]
     assert record["alignment"]["count"] == 30 and record["alignment"]["pixel_mean"] == [90.0] * 3
@@ -101,9 +108,12 @@ def _rest_file(path, frames: int, level: int, image_size: int = 64):
     g = SensorGeometry(image_size_px=image_size)
     with DatasetWriter(path, g) as w:
         w.append(
-            np.full((frames, image_size, image_size, 3), level, np.uint8), np.zeros(frames),
-            np.zeros((frames, 2)), np.ones(frames, bool), 1.7e9 + np.arange(frames) / 30.0,
-        )  # fmt: skip
+            np.full((frames, image_size, image_size, 3), level, np.uint8),
+            np.zeros(frames),
+            np.zeros((frames, 2)),
+            np.ones(frames, bool),
+            1.7e9 + np.arange(frames) / 30.0,
+        )
     return path
 
 

@@ -23,8 +23,9 @@ def test_calibration_report_in_chromium(make_dataset, tiny_model, tmp_path):
     base = tiny_model.save(tmp_path / "base.pt")
     out = tmp_path / "cal"
     data = make_dataset(presses=6)
-    config = CalibrateConfig(data=str(data), out=str(out), base=str(base), budget_min=0.1,
-                             progress=False)  # fmt: skip
+    config = CalibrateConfig(
+        data=str(data), out=str(out), base=str(base), budget_min=0.1, progress=False
+    )
     calibrate(config)
     with sync_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
@@ -36,8 +37,13 @@ def test_calibration_report_in_chromium(make_dataset, tiny_model, tmp_path):
         assert page.locator("main > h1").inner_text().startswith("Calibration: tiny.h5")
         assert "zero-press alignment" in page.locator("p.summary").inner_text()
         heads = page.locator("table.metrics thead th").all_inner_texts()
-        assert heads == ["metric", "this run", "paper", "baseline: base model, zero-shot",
-                         "baseline: alignment only"]  # fmt: skip
+        assert heads == [
+            "metric",
+            "this run",
+            "paper",
+            "baseline: base model, zero-shot",
+            "baseline: alignment only",
+        ]
         images = page.locator("figure img")
         assert [images.nth(i).get_attribute("src") for i in range(images.count())] == FIGURES
         sizes = page.evaluate("[...document.images].map(i => [i.complete, i.naturalWidth])")

@@ -250,6 +250,5 @@ class DatasetWriter(ClosesOrAborts):
             sys.unraisablehook = hook
 
 
-
 def _is_write_failure(e: BaseException | None) -> bool:
     return isinstance(e, (OSError, RuntimeError)) and "write failed" in str(e)

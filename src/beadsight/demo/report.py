@@ -119,5 +119,3 @@ def demo_report(summary: dict, metrics: dict, sim_config: SimConfig, colour_max:
         model_card_title=f"Model card ({Path(summary['checkpoint']).with_suffix('.md').name})",
         files=evaluation_links(files, descriptions),
     )
-
-

@@ -445,7 +445,9 @@ class HX711Scale(DeviceContext):
         self, device_grams: float, seq: int, device_ms: int | None, t_unix: float, t_mono: float
     ) -> None:
         grams = round((device_grams - self.offset_g) * self.gain, 2)
-        reading = ScaleReading(t_unix, t_mono, grams, float(grams_to_newtons(grams)), seq, device_ms)
+        reading = ScaleReading(
+            t_unix, t_mono, grams, float(grams_to_newtons(grams)), seq, device_ms
+        )
         with self._cond:
             self._buffer.append(reading)
             self._raw.append(device_grams)

@@ -70,6 +70,9 @@ class FrameTruth:
         if slow and not self.slow:
             logger.warning(
                 "%s: delivers %.1f fps but %.3g fps was requested (below %d %%)",
-                self.name, rate, self.requested_fps, round(SLOW_FRACTION * 100),
-            )  # fmt: skip
+                self.name,
+                rate,
+                self.requested_fps,
+                round(SLOW_FRACTION * 100),
+            )
         self.slow = slow

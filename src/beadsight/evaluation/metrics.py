@@ -375,7 +375,7 @@ def format_metrics_table(metrics: dict, baselines: dict[str, dict] | None = None
 
 
 def compare_with_paper(key: str, value: float | None, fmt: str = "{:.3g}") -> str | None:
-    """"better", "worse" or "same" than the paper's figure for metric ``key``, as shown
+    """ "better", "worse" or "same" than the paper's figure for metric ``key``, as shown
     with ``fmt`` (values that print alike are the same); None if either is missing."""
     paper = PAPER_METRICS.get(key)
     if value is None or paper is None:

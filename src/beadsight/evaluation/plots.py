@@ -65,8 +65,9 @@ def plot_examples(
     vmax = max(float(gt_kpa.max()), float(pred_kpa.max()), MIN_COLOUR_RANGE_KPA)
     fig = _new_figure(PANEL_IN * k + 1.0, PANEL_IN * 2 + 0.4)
     axes = fig.subplots(2, k, squeeze=False)
-    fig.subplots_adjust(left=0.6 / (PANEL_IN * k + 1.0), right=0.97, bottom=0.1, top=0.93,
-                        wspace=0.3, hspace=0.3)  # fmt: skip
+    fig.subplots_adjust(
+        left=0.6 / (PANEL_IN * k + 1.0), right=0.97, bottom=0.1, top=0.93, wspace=0.3, hspace=0.3
+    )
     extent = _extent_mm(geometry)
     image = None
     for j in range(k):
@@ -152,8 +153,9 @@ def plot_force_traces(traces: Sequence[ForceTrace], path: str | Path) -> Path:
         raise ValueError("need at least one force trace")
     fig = _new_figure(3.2 * len(traces) + 0.75, 3.0)
     axes = fig.subplots(1, len(traces), squeeze=False)[0]
-    fig.subplots_adjust(left=0.75 / (3.2 * len(traces) + 0.75), right=0.98, bottom=0.17,
-                        top=0.9, wspace=0.25)  # fmt: skip
+    fig.subplots_adjust(
+        left=0.75 / (3.2 * len(traces) + 0.75), right=0.98, bottom=0.17, top=0.9, wspace=0.25
+    )
     for ax, trace in zip(axes, traces, strict=True):
         ax.plot(trace.time_s, trace.force_gt_n, color="black", label="true")
         ax.plot(

@@ -292,9 +292,7 @@ def _split_text(metrics: Mapping) -> str:
         "checkpoint": "as stored in the checkpoint",
         "recomputed": "recomputed",
         "given": "presses kept out of training",
-    }.get(
-        source, source
-    )
+    }.get(source, source)
     return f"the {split} split ({how})" if how else f"the {split} split"
 
 

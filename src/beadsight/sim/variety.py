@@ -92,22 +92,46 @@ def _f(name, group, unit, train, doc, heldout=(), integer=False) -> Factor:
 
 FACTORS: tuple[Factor, ...] = (
     # --- the pouch ---------------------------------------------------------------
-    _f("n_beads", "pouch", "beads", (71, 129), "beads in the pouch",
-       heldout=((60, 70), (130, 140)), integer=True),
+    _f(
+        "n_beads",
+        "pouch",
+        "beads",
+        (71, 129),
+        "beads in the pouch",
+        heldout=((60, 70), (130, 140)),
+        integer=True,
+    ),
     _f("bead_diameter_mm", "pouch", "mm", (3.5, 4.5), "mean diameter of a saturated bead"),
     _f("bead_diameter_spread_mm", "pouch", "mm", (0.15, 0.55), "std of bead diameters"),
     _f("tint_count", "pouch", "tints", (1, 6), "bead colours in the bag (from 9)", integer=True),
     _f("tint_strength", "pouch", "x", (0.4, 1.4), "saturation of the tints (1: reference)"),
     _f("n_bubbles", "pouch", "bubbles", (0, 12), "air bubbles left in", integer=True),
     _f("bubble_max_diameter_mm", "pouch", "mm", (1.2, 3.0), "largest bubble (smallest 0.6 mm)"),
-    _f("stiffness_scale", "pouch", "x", (0.8, 1.25), "pouch stiffness vs. the reference law "
-       "(4.3 N at 1 mm for 100 beads, x sqrt(beads / 100))"),
+    _f(
+        "stiffness_scale",
+        "pouch",
+        "x",
+        (0.8, 1.25),
+        "pouch stiffness vs. the reference law (4.3 N at 1 mm for 100 beads, x sqrt(beads / 100))",
+    ),
     _f("stiffness_exponent", "pouch", "", (2.0, 2.5), "F ~ depth^p: how fast the pouch stiffens"),
     # --- the light ---------------------------------------------------------------
-    _f("led_intensity", "light", "x", (0.75, 1.25), "LED brightness (1: reference build)",
-       heldout=((0.55, 0.72), (1.28, 1.45))),
-    _f("led_colour_temperature_k", "light", "K", (3300, 5800), "LED colour temperature",
-       heldout=((2800, 3200), (5900, 7000))),
+    _f(
+        "led_intensity",
+        "light",
+        "x",
+        (0.75, 1.25),
+        "LED brightness (1: reference build)",
+        heldout=((0.55, 0.72), (1.28, 1.45)),
+    ),
+    _f(
+        "led_colour_temperature_k",
+        "light",
+        "K",
+        (3300, 5800),
+        "LED colour temperature",
+        heldout=((2800, 3200), (5900, 7000)),
+    ),
     _f("vignetting", "light", "", (0.25, 0.6), "brightness lost at the image corners"),
     _f("led_offset_mm", "light", "mm", (12.0, 18.0), "LEDs at (+-this, +-this) from the centre"),
     _f("led_height_mm", "light", "mm", (8.0, 14.0), "distance of the LEDs from the beads"),
@@ -133,7 +157,7 @@ FACTORS: tuple[Factor, ...] = (
     _f("motion_blur_fraction", "image", "", (0.0, 0.4), "exposure reaching into the last frame"),
     _f("defocus_sigma_mm", "image", "mm", (0.0, 0.25), "out-of-focus blur on the pouch"),
     _f("jpeg_quality", "image", "", (50, 95), "MJPG (JPEG) quality of every frame", integer=True),
-)  # fmt: skip
+)
 FACTOR_NAMES = tuple(f.name for f in FACTORS)
 
 
@@ -201,11 +225,25 @@ def build_config(
     v = values
     changes: dict[str, Any] = {}
     direct = (
-        "bead_diameter_mm", "bead_diameter_spread_mm", "stiffness_exponent", "led_intensity",
-        "vignetting", "led_offset_mm", "led_height_mm", "led_rotation_deg", "ambient_light",
-        "exposure_gain", "camera_roll_deg", "lens_focal_error", "lens_distortion_k",
-        "crop_scale_error", "noise_std", "flicker", "motion_blur_fraction", "defocus_sigma_mm",
-    )  # fmt: skip
+        "bead_diameter_mm",
+        "bead_diameter_spread_mm",
+        "stiffness_exponent",
+        "led_intensity",
+        "vignetting",
+        "led_offset_mm",
+        "led_height_mm",
+        "led_rotation_deg",
+        "ambient_light",
+        "exposure_gain",
+        "camera_roll_deg",
+        "lens_focal_error",
+        "lens_distortion_k",
+        "crop_scale_error",
+        "noise_std",
+        "flicker",
+        "motion_blur_fraction",
+        "defocus_sigma_mm",
+    )
     changes.update({name: float(v[name]) for name in direct if name in v})
     for name in ("n_beads", "n_bubbles", "jpeg_quality"):
         if name in v:

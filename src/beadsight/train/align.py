@@ -93,9 +93,11 @@ def align_to_rest(
     }
     logger.info(
         "alignment: %d rest frames (%s): pixel mean %s -> %s",
-        record["count"], what,
-        np.round(record["pixel_mean_before"], 1).tolist(), np.round(mean, 1).tolist(),
-    )  # fmt: skip
+        record["count"],
+        what,
+        np.round(record["pixel_mean_before"], 1).tolist(),
+        np.round(mean, 1).tolist(),
+    )
     return with_meta(model, pixel_mean=list(mean), pixel_std=list(std)), record
 
 

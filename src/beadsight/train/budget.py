@@ -54,14 +54,23 @@ class Clock:
         """Steps done of ``total``, or, with a budget, seconds of it (the time left)."""
         if self.limit_s is None:
             return tqdm(
-                total=total, initial=step, desc="training", unit="step", mininterval=1.0,
+                total=total,
+                initial=step,
+                desc="training",
+                unit="step",
+                mininterval=1.0,
                 disable=disable,
-            )  # fmt: skip
+            )
         self._shown = min(self.elapsed(), self.limit_s)
         return tqdm(
-            total=self.limit_s, initial=self._shown, desc="training", unit="s",
-            mininterval=1.0, bar_format=BUDGET_BAR_FORMAT, disable=disable,
-        )  # fmt: skip
+            total=self.limit_s,
+            initial=self._shown,
+            desc="training",
+            unit="s",
+            mininterval=1.0,
+            bar_format=BUDGET_BAR_FORMAT,
+            disable=disable,
+        )
 
     def advance(self, bar: tqdm) -> None:
         """Move the bar by one step, or to the time spent."""

@@ -63,8 +63,17 @@ REPORT_RESERVE_S = 5.0  # writing model.pt, plots and the report
 MIN_TRAIN_S = 3.0  # fine-tune at least this long, even past the budget
 VAL_MAX_WINDOWS = 256  # early stopping validates on at most about this many windows
 RUN_EPOCHS = 1_000_000  # the budget, not the epoch count, ends the fine-tuning
-STAGE_KEYS = ("mae_kpa", "force_error_pct", "cop_error_mm", "iou", "worst_region_mae_kpa",
-              "frames", "presses", "coverage", "window_coverage")  # fmt: skip
+STAGE_KEYS = (
+    "mae_kpa",
+    "force_error_pct",
+    "cop_error_mm",
+    "iou",
+    "worst_region_mae_kpa",
+    "frames",
+    "presses",
+    "coverage",
+    "window_coverage",
+)
 
 
 def base_checkpoint(base: str | None) -> Path:
@@ -93,17 +102,36 @@ def train_config(config: CalibrateConfig, base: PressureModel, base_path: Path) 
     """The fine-tuning's TrainConfig: the base model's shape, the recipe, this run's presses."""
     m = base.meta.model
     return TrainConfig(
-        data=config.data, out=str(Path(config.out) / TRAIN_FOLDER), init=str(base_path),
-        frames=m.frames, frame_stride=m.frame_stride, width=m.width, up_kernel=m.up_kernel,
-        dropout=m.dropout, rest_input=m.rest_input, image_size=base.image_size, epochs=RUN_EPOCHS,
-        budget_min=config.budget_min, val_every_min=config.val_every_min,
-        lr=config.lr, lr_min=config.lr_min, lr_schedule="cosine", batch_size=config.batch_size,
-        noise_std=config.noise_std, augment=config.augment, split=CALIBRATION_SPLIT,
-        seed=config.seed, presses=config.presses, skip_presses=config.skip,
+        data=config.data,
+        out=str(Path(config.out) / TRAIN_FOLDER),
+        init=str(base_path),
+        frames=m.frames,
+        frame_stride=m.frame_stride,
+        width=m.width,
+        up_kernel=m.up_kernel,
+        dropout=m.dropout,
+        rest_input=m.rest_input,
+        image_size=base.image_size,
+        epochs=RUN_EPOCHS,
+        budget_min=config.budget_min,
+        val_every_min=config.val_every_min,
+        lr=config.lr,
+        lr_min=config.lr_min,
+        lr_schedule="cosine",
+        batch_size=config.batch_size,
+        noise_std=config.noise_std,
+        augment=config.augment,
+        split=CALIBRATION_SPLIT,
+        seed=config.seed,
+        presses=config.presses,
+        skip_presses=config.skip,
         train_layers="decoder" if config.layers == "decoder" else "all",
-        device=config.device, progress=config.progress, log_every_steps=10, val_at_start=True,
+        device=config.device,
+        progress=config.progress,
+        log_every_steps=10,
+        val_at_start=True,
         checkpoint_every_min=1e6,
-    )  # fmt: skip
+    )
 
 
 def check_data(config: CalibrateConfig, base: PressureModel, tc: TrainConfig) -> dict[str, Any]:
@@ -144,9 +172,15 @@ def check_data(config: CalibrateConfig, base: PressureModel, tc: TrainConfig) ->
 def score(model: PressureModel | Path, config: CalibrateConfig, split: dict, **kwargs) -> dict:
     """Metrics of ``model`` on the test presses (every frame with a full window)."""
     return evaluate(
-        model, config.data, presses=split["test"], train_presses=split["train"], resize=True,
-        device=config.device, progress=config.progress, **kwargs,
-    )  # fmt: skip
+        model,
+        config.data,
+        presses=split["test"],
+        train_presses=split["train"],
+        resize=True,
+        device=config.device,
+        progress=config.progress,
+        **kwargs,
+    )
 
 
 def stage(metrics: dict) -> dict:
@@ -165,8 +199,10 @@ def calibrate(config: CalibrateConfig) -> dict:
     split = data["split"]
     logger.info(
         "calibrating %s on %s: %d train, %d early-stopping, %d test presses",
-        base_path, config.data, *(len(split[k]) for k in ("train", "val", "test")),
-    )  # fmt: skip
+        base_path,
+        config.data,
+        *(len(split[k]) for k in ("train", "val", "test")),
+    )
     t_eval = time.monotonic()
     stages = {"zero_shot": stage(score(base, config, split, plots=False))}
     t_eval = time.monotonic() - t_eval
@@ -214,9 +250,15 @@ def fine_tune_start(
     maes = {}
     for name, model in (("base", base), ("aligned", aligned)):
         metrics = evaluate(
-            model, config.data, presses=split["val"], resize=True, device=config.device,
-            progress=False, plots=False, max_frames=VAL_MAX_WINDOWS,
-        )  # fmt: skip
+            model,
+            config.data,
+            presses=split["val"],
+            resize=True,
+            device=config.device,
+            progress=False,
+            plots=False,
+            max_frames=VAL_MAX_WINDOWS,
+        )
         maes[name] = metrics["mae_kpa"]
     chosen = "aligned" if maes["aligned"] <= maes["base"] else "base"
     record.update(val_mae_kpa=maes, fine_tune_from=chosen)

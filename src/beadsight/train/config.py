@@ -70,7 +70,14 @@ _INT_MINIMUMS = {
     "skip_presses": 0,
 }
 _OPTIONAL_INTS = ("steps", "threads", "image_size", "presses")  # None, or an integer >= 1
-_NON_NEGATIVE = ("lr", "lr_min", "weight_decay", "noise_std", "checkpoint_every_min", "color_jitter")
+_NON_NEGATIVE = (
+    "lr",
+    "lr_min",
+    "weight_decay",
+    "noise_std",
+    "checkpoint_every_min",
+    "color_jitter",
+)
 _OPTIONAL_POSITIVE = ("budget_min", "val_every_min")  # None, or a number > 0
 
 

@@ -64,9 +64,20 @@ def open_ours(path: Path) -> logs.Recording:
         frame_hw = probe_video(next(iter(videos.values())))[0]
     files = {"frames": logs.FRAMES_FILE, "force": logs.FORCE_FILE, "moves": logs.PRINTER_FILE}
     return logs.Recording(
-        path, logs.RAW_FORMAT, metadata, frames, force, moves, events, videos, fps, frame_hw,
-        centre, warnings, files,
-    )  # fmt: skip
+        path,
+        logs.RAW_FORMAT,
+        metadata,
+        frames,
+        force,
+        moves,
+        events,
+        videos,
+        fps,
+        frame_hw,
+        centre,
+        warnings,
+        files,
+    )
 
 
 def _read_frames(path: Path, warnings: list[str]) -> logs.FrameLog:

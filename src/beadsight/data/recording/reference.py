@@ -66,9 +66,20 @@ def open_reference(path: Path) -> logs.Recording:
         "moves": logs.REF_PRINTER_FILE,
     }
     return logs.Recording(
-        path, logs.REFERENCE_RAW_FORMAT, metadata, frames, force, moves, [], videos, fps,
-        frame_hw, centre, warnings, files,
-    )  # fmt: skip
+        path,
+        logs.REFERENCE_RAW_FORMAT,
+        metadata,
+        frames,
+        force,
+        moves,
+        [],
+        videos,
+        fps,
+        frame_hw,
+        centre,
+        warnings,
+        files,
+    )
 
 
 def _read_frames(path: Path, warnings: list[str]) -> tuple[logs.FrameLog, dict[int, Path]]:
