@@ -27,7 +27,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # Chromium settings and the child process of the tests
-from browser_helpers import CHROMIUM, CHROMIUM_ARGS, Beadsight  # noqa: E402
+from helpers.browser import CHROMIUM, CHROMIUM_ARGS, Beadsight  # noqa: E402
 
 README = ROOT / "README.md"
 IMAGES = ROOT / "docs" / "images"

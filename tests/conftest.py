@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from synthetic_presses import write_synthetic_dataset
+from helpers.synthetic_presses import write_synthetic_dataset
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry

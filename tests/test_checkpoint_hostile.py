@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from forged_checkpoints import (
+from helpers.forged_checkpoints import (
     Forged,
     ForgedDtype,
     dtype_state,
@@ -21,7 +21,7 @@ from forged_checkpoints import (
     object_array_with_cleared_flags,
     save_forged,
 )
-from isolated import run_isolated
+from helpers.isolated import run_isolated
 from test_checkpoint import reference_training_dict
 
 from beadsight import load_checkpoint

@@ -2,7 +2,7 @@
 the reference layout, and the reference import) and live readings files.
 
 Files whose claims would make today's readers allocate tens of GB are opened in a
-subprocess with limited address space (tests/isolated.py), so a reader that trusts the
+subprocess with limited address space (tests/helpers/isolated.py), so a reader that trusts the
 claim fails its test instead of exhausting the machine.
 """
 
@@ -15,7 +15,7 @@ import h5py
 import numpy as np
 import pytest
 from data.test_dataset import write_reference_file
-from isolated import run_isolated
+from helpers.isolated import run_isolated
 
 from beadsight.cli import main
 from beadsight.config import SensorGeometry

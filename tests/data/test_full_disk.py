@@ -6,6 +6,7 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
+from helpers.recording import Timeline, write_beadsight_raw
 
 from beadsight.cli import main
 from beadsight.config import SensorGeometry
@@ -13,7 +14,6 @@ from beadsight.data.dataset import open_dataset
 from beadsight.data.process import ProcessConfig, process_recording
 from beadsight.data.writer import DatasetWriter
 from beadsight.files import WriteError
-from tests.recording_helpers import Timeline, write_beadsight_raw
 
 
 def _leftovers(folder) -> list[str]:

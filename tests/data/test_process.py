@@ -6,6 +6,13 @@ import json
 
 import numpy as np
 import pytest
+from helpers.recording import (
+    T0_UNIX,
+    Timeline,
+    frame_level,
+    write_beadsight_raw,
+    write_reference_raw,
+)
 
 from beadsight.cli import main
 from beadsight.config import ConfigError
@@ -18,13 +25,6 @@ from beadsight.data.process import (
     qa_paths,
 )
 from beadsight.data.recording import RecordingError, open_recording
-from tests.recording_helpers import (
-    T0_UNIX,
-    Timeline,
-    frame_level,
-    write_beadsight_raw,
-    write_reference_raw,
-)
 
 SMALL = ProcessConfig(image_size=32, workers=2, batch_frames=16)
 

@@ -9,6 +9,15 @@ import textwrap
 
 import numpy as np
 import pytest
+from helpers.recording import (
+    CENTRE,
+    T0_MONO,
+    T0_UNIX,
+    Timeline,
+    frame_level,
+    write_beadsight_raw,
+    write_reference_raw,
+)
 
 from beadsight.data.recording import (
     RAW_FORMAT,
@@ -19,15 +28,6 @@ from beadsight.data.recording import (
     is_mjpg,
     iter_video,
     open_recording,
-)
-from tests.recording_helpers import (
-    CENTRE,
-    T0_MONO,
-    T0_UNIX,
-    Timeline,
-    frame_level,
-    write_beadsight_raw,
-    write_reference_raw,
 )
 
 

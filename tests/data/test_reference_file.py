@@ -14,7 +14,7 @@ import json
 import h5py
 import numpy as np
 import pytest
-from synthetic_presses import make_press_arrays, synthetic_press_frames
+from helpers.synthetic_presses import make_press_arrays, synthetic_press_frames
 
 from beadsight.cli import main
 from beadsight.config import REFERENCE_G_TO_N, SensorGeometry

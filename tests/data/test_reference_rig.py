@@ -11,18 +11,18 @@ import json
 
 import numpy as np
 import pytest
+from helpers.recording import (
+    T0_UNIX,
+    Timeline,
+    write_beadsight_raw,
+    write_reference_raw,
+)
 
 from beadsight.cli import main
 from beadsight.data.dataset import open_dataset
 from beadsight.data.process import ProcessConfig, process_recording
 from beadsight.data.recording import RecordingError, open_recording
 from beadsight.files import OutputExistsError
-from tests.recording_helpers import (
-    T0_UNIX,
-    Timeline,
-    write_beadsight_raw,
-    write_reference_raw,
-)
 
 SMALL = ProcessConfig(image_size=32, workers=2, batch_frames=16)
 

@@ -11,7 +11,7 @@ import zipfile
 
 import numpy as np
 import pytest
-from isolated import run_isolated
+from helpers.isolated import run_isolated
 
 from beadsight.data.rest import (
     REST_FILE_MAX_PX,

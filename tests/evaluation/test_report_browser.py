@@ -7,7 +7,7 @@ from __future__ import annotations
 import shutil
 
 import pytest
-from browser_helpers import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
+from helpers.browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
 
 from beadsight.checkpoint import CheckpointError, shipped_model_path
 from beadsight.cli import main

@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from inference_helpers import stream
+from helpers.inference import stream
 
 from beadsight.checkpoint import CheckpointError, load_checkpoint
 from beadsight.config import ConfigError, ModelConfig

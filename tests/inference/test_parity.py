@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from inference_helpers import T
+from helpers.inference import T
 
 from beadsight.checkpoint import PressureModel
 from beadsight.inference.parity import PARITY_TOLERANCE, ParityError, probe_window

@@ -10,7 +10,7 @@ import logging
 import numpy as np
 import pytest
 import torch
-from inference_helpers import stream
+from helpers.inference import stream
 
 from beadsight.checkpoint import load_checkpoint
 from beadsight.data.rest import REST_FRAMES, average_rest, with_rest

@@ -7,7 +7,7 @@ import importlib.util
 import numpy as np
 import pytest
 import torch
-from inference_helpers import T, stream
+from helpers.inference import T, stream
 
 from beadsight.checkpoint import PressureModel
 from beadsight.inference.parity import PARITY_TOLERANCE, ParityError, check_parity, probe_window

@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 
 import pytest
-from live_helpers import tiny_model, wait_until
+from helpers.live import tiny_model, wait_until
 
 
 @pytest.fixture

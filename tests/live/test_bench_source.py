@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from live_helpers import TORCH, press_frames, tiny_model, write_video
+from helpers.live import TORCH, press_frames, tiny_model, write_video
 
 from beadsight.cli import main
 from beadsight.live.bench import bench_source

@@ -16,14 +16,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from browser_helpers import Beadsight
-from live_helpers import (
+from helpers.browser import Beadsight
+from helpers.live import (
     BACKEND,
     press_frames,
     tiny_model,
     wait_until,
 )
-from publish_helpers import HEALTH_STATES, HealthTagger, PacedSource, live_without
+from helpers.publish import HEALTH_STATES, HealthTagger, PacedSource, live_without
 
 from beadsight.cli import main
 from beadsight.live import ros_messages as msg

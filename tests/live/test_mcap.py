@@ -7,7 +7,7 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
-from live_helpers import BACKEND, SPAN, ScriptedSource, press_frames, tiny_model
+from helpers.live import BACKEND, SPAN, ScriptedSource, press_frames, tiny_model
 
 from beadsight.cli import main
 from beadsight.live.mcap import TOPIC_COP, TOPIC_FORCE, TOPIC_PRESSURE, export_mcap

@@ -6,8 +6,8 @@ from __future__ import annotations
 import threading
 
 import pytest
-from live_helpers import wait_until
-from publish_helpers import Health
+from helpers.live import wait_until
+from helpers.publish import Health
 
 from beadsight.live.listeners import LiveStatus
 from beadsight.live.publisher import BackgroundPublisher

@@ -11,7 +11,7 @@ import logging
 import numpy as np
 import pytest
 import torch
-from live_helpers import TINY, TORCH, StatusLog
+from helpers.live import TINY, TORCH, StatusLog
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig

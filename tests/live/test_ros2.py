@@ -21,14 +21,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from browser_helpers import Beadsight
-from live_helpers import (
+from helpers.browser import Beadsight
+from helpers.live import (
     BACKEND,
     press_frames,
     tiny_model,
     wait_until,
 )
-from publish_helpers import Health, HealthTagger, PacedSource, live_without
+from helpers.publish import Health, HealthTagger, PacedSource, live_without
 
 from beadsight.cli import main
 from beadsight.errors import BeadSightError

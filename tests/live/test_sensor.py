@@ -13,7 +13,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
-from live_helpers import (
+from helpers.live import (
     BACKEND,
     SPAN,
     TINY,

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from live_helpers import (
+from helpers.live import (
     TORCH,
     press_frames,
     tiny_model,

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from live_helpers import (
+from helpers.live import (
     BACKEND,
     SPAN,
     TINY,

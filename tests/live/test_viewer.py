@@ -10,7 +10,7 @@ import time
 from dataclasses import replace
 
 import pytest
-from live_helpers import TORCH, wait_until
+from helpers.live import TORCH, wait_until
 
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.viewer.http import host_allowed, host_name

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from browser_helpers import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, Beadsight
-from live_helpers import live_argv, press_frames, tiny_model, write_video
+from helpers.browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, Beadsight
+from helpers.live import live_argv, press_frames, tiny_model, write_video
 
 from beadsight.live.readings import open_readings
 

@@ -259,7 +259,7 @@ def test_resume_continues_the_plan(tmp_path):
 
 
 def test_collection_and_live_read_the_same_virtual_camera(tmp_path):
-    from live_helpers import BACKEND, tiny_model
+    from helpers.live import BACKEND, tiny_model
 
     from beadsight.devices import Camera
     from beadsight.devices.virtual import VirtualCamera

@@ -8,7 +8,7 @@ import json
 import h5py
 import numpy as np
 import pytest
-from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
+from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight import load_checkpoint
 from beadsight.cli import main

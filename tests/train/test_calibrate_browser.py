@@ -5,8 +5,8 @@ nothing loaded from outside the folder. Saves artifacts/report-calibrate.png."""
 from __future__ import annotations
 
 import pytest
-from browser_helpers import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
-from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
+from helpers.browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
+from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight.train.calibrate import calibrate
 from beadsight.train.calibrate_config import CalibrateConfig

@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 
 import pytest
-from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
+from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight import load_checkpoint
 from beadsight.cli import main

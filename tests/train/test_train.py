@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
+from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight import load_checkpoint
 from beadsight.checkpoint import CheckpointError, read_checkpoint_file

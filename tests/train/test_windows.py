@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from train_helpers import one_torch_thread  # noqa: F401  (an autouse fixture)
+from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight.data.dataset import open_dataset
 from beadsight.data.labels import label_maps

@@ -6,10 +6,9 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 
-from isolated import run_isolated
-from live_helpers import ScriptedSource
-
 from beadsight.live.listeners import LiveUpdate
+from helpers.isolated import run_isolated
+from helpers.live import ScriptedSource
 
 HEALTH_STATES = ("ok", "drifting", "recalibrate")
 

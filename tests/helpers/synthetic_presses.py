@@ -1,6 +1,6 @@
 """Synthetic finger presses: force ramps at random positions and the frames they darken.
 
-Shared by the dataset fixtures (conftest.py), the live tests (live_helpers.py) and the
+Shared by the dataset fixtures (conftest.py), the live tests (helpers/live.py) and the
 reference-file tests; a normal module, so any test folder can import it.
 """
 

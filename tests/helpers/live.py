@@ -11,7 +11,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from synthetic_presses import make_press_arrays, synthetic_press_frames
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
@@ -23,6 +22,7 @@ from beadsight.devices import (
 )
 from beadsight.devices.base import DeviceContext, Frame
 from beadsight.live.settings import LiveSettings
+from helpers.synthetic_presses import make_press_arrays, synthetic_press_frames
 
 TINY = SensorGeometry(image_size_px=64)
 SPAN = 15  # frames per window of tiny_model() (15 frames, stride 1)

@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# The tests as CI runs them: lint, format check, then the whole suite (skips listed).
+# Usage: scripts/test.sh [pytest args...]   (after scripts/setup.sh --dev)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+.venv/bin/ruff check .
+.venv/bin/ruff format --check .
+.venv/bin/python -m pytest -q -rs "$@"

@@ -1,0 +1,1 @@
+"""Shared test helpers: fixtures data, virtual peers, isolated subprocesses, browsers."""
