@@ -6,12 +6,11 @@ fault injection (``!!DEBUG:...``) and, by default, transmission errors at lines 
 110 and 115. ``benchmarks/octoprint_bridge.py`` serves it on a pty; this script runs a
 short press session through it with the real driver and prints each step ok / FAILED.
 
-Setup (OctoPrint pins many packages: give it its own venv, not the project's)::
+OctoPrint pins many packages, so it has a venv of its own: ``scripts/setup.sh --dev`` makes
+``.venv-octoprint/``, used by default; ``--octoprint-python PATH`` or
+``BEADSIGHT_OCTOPRINT_PYTHON`` names another::
 
-    python3 -m venv /work/peers/octoprint
-    /work/peers/octoprint/bin/pip install OctoPrint
-    BEADSIGHT_OCTOPRINT_PYTHON=/work/peers/octoprint/bin/python \\
-        .venv/bin/python benchmarks/octoprint_peer.py          # or --octoprint-python PATH
+    .venv/bin/python benchmarks/octoprint_peer.py
 
 Steps: connect, home (OctoPrint homes to 0,0,0: the driver must rise straight up
 first), presses at ten points (they cross lines 100-115), then one fault per step: a
@@ -52,6 +51,7 @@ from beadsight.inference.machine import cpu_summary
 
 BRIDGE = Path(__file__).with_name("octoprint_bridge.py")
 ENV_VAR = "BEADSIGHT_OCTOPRINT_PYTHON"
+SETUP_VENV = Path(__file__).resolve().parents[1] / ".venv-octoprint" / "bin" / "python"
 ENVELOPE = SafetyEnvelope(
     centre_xy_mm=(30.0, 30.0), xy_half_range_mm=15.0, z_floor_mm=2.0, z_clear_mm=10.0
 )  # OctoPrint's virtual printer homes to (0, 0, 0); the "sensor" sits at (30, 30)
@@ -294,13 +294,17 @@ def make_printer(port: str) -> MarlinPrinter:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--octoprint-python", default=os.environ.get(ENV_VAR))
+    parser.add_argument(
+        "--octoprint-python",
+        default=os.environ.get(ENV_VAR) or (str(SETUP_VENV) if SETUP_VENV.is_file() else None),
+    )
     parser.add_argument("--presses", type=int, default=10, help="clean presses before the faults")
     parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
     args = parser.parse_args(argv)
     if not args.octoprint_python:
         print(
-            f"set {ENV_VAR} or --octoprint-python to a python with OctoPrint installed",
+            f"no OctoPrint: run scripts/setup.sh --dev (makes {SETUP_VENV}), or set {ENV_VAR} "
+            "or --octoprint-python to a python with OctoPrint installed",
             file=sys.stderr,
         )
         return 2

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import faulthandler
+import os
 import signal
 import sys
 from pathlib import Path
@@ -27,6 +28,30 @@ def pytest_configure(config):
     """
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+STRICT = os.environ.get("CI", "").lower() == "true"  # CI: a skipped test fails the run
+
+
+def pytest_collection_modifyitems(config, items):
+    """GPU tests are collected only where a CUDA device exists: on a CPU-only machine they are
+    deselected (counted as such), not skipped. ../shared/gpu-checklist.md runs them on a GPU."""
+    if torch.cuda.is_available():
+        return
+    gpu = [item for item in items if item.get_closest_marker("gpu")]
+    if gpu:
+        config.hook.pytest_deselected(items=gpu)
+        items[:] = [item for item in items if not item.get_closest_marker("gpu")]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Under CI=true every declared extra, chromium and root are set up by scripts/setup.sh, so
+    a skipped test means a broken setup: the run fails and says so (-rs lists the reasons)."""
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    skipped = reporter.stats.get("skipped", []) if reporter else []
+    if STRICT and skipped:
+        reporter.write_sep("=", f"CI=true: {len(skipped)} skipped test(s) fail the run", red=True)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 @pytest.hookimpl(trylast=True)

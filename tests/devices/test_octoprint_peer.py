@@ -1,10 +1,7 @@
 """MarlinPrinter against OctoPrint's virtual printer (optional: an independent peer).
 
-OctoPrint pins many packages, so it lives in its own venv; this test runs only when
-``BEADSIGHT_OCTOPRINT_PYTHON`` names that venv's python (docs/hardware.md)::
-
-    python3 -m venv /work/peers/octoprint && /work/peers/octoprint/bin/pip install OctoPrint
-    BEADSIGHT_OCTOPRINT_PYTHON=/work/peers/octoprint/bin/python pytest tests/devices/test_octoprint_peer.py
+OctoPrint pins many packages, so it lives in its own venv: ``scripts/setup.sh --dev`` makes
+``.venv-octoprint/``; ``BEADSIGHT_OCTOPRINT_PYTHON`` names another one (docs/hardware.md).
 """
 
 from __future__ import annotations
@@ -19,11 +16,14 @@ import pytest
 
 import beadsight
 
-PYTHON = os.environ.get("BEADSIGHT_OCTOPRINT_PYTHON")
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "octoprint_peer.py"
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "benchmarks" / "octoprint_peer.py"
+PYTHON = os.environ.get("BEADSIGHT_OCTOPRINT_PYTHON") or str(ROOT / ".venv-octoprint/bin/python")
 
 pytestmark = pytest.mark.skipif(
-    not PYTHON, reason="set BEADSIGHT_OCTOPRINT_PYTHON to a python with OctoPrint installed"
+    not Path(PYTHON).is_file(),
+    reason=f"no OctoPrint python at {PYTHON}: run scripts/setup.sh --dev, or set "
+    "BEADSIGHT_OCTOPRINT_PYTHON to a python with OctoPrint installed",
 )
 
 

@@ -22,8 +22,6 @@ from beadsight.devices import (
 from beadsight.devices.marlin import checksum, clean_gcode, frame_line, parse_position
 from beadsight.devices.virtual import VirtualPrinter
 
-pytest.importorskip("serial")
-
 CENTRE = REFERENCE_CENTRE_XY_MM
 ENVELOPE = SafetyEnvelope(
     centre_xy_mm=CENTRE, xy_half_range_mm=15.0, z_floor_mm=126.5, z_clear_mm=135.0

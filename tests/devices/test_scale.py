@@ -20,8 +20,6 @@ from beadsight.devices.scale_protocol import (
 from beadsight.devices.virtual import VirtualScale
 from beadsight.geometry import grams_to_newtons
 
-pytest.importorskip("serial")
-
 
 def virtual_scale(**kwargs) -> VirtualScale:
     kwargs.setdefault("noise_g", 0.02)

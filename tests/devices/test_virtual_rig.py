@@ -9,11 +9,9 @@ import time
 import numpy as np
 import pytest
 
+import beadsight.sim.config as sim_config
 from beadsight.devices import Camera, Printer, SafetyError, Scale
 from beadsight.devices.virtual import VirtualRig
-
-pytest.importorskip("serial")
-sim_config = pytest.importorskip("beadsight.sim.config")
 
 TIME_SCALE = 10.0  # simulated seconds per host second
 SETTLE_S = 0.05

@@ -22,7 +22,6 @@ def test_probe_window_has_a_real_peak(probe_model):
 
 def test_named_backend_that_disagrees_is_refused(probe_model, tmp_path):
     """An ONNX file whose metadata claims this checkpoint but holds other weights."""
-    pytest.importorskip("onnxruntime")
     import onnx
 
     from beadsight.inference.exported import exported_metadata, write_onnx

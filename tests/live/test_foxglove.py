@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import websockets.sync.client as websockets_sync
 from helpers.browser import Beadsight
 from helpers.live import (
     BACKEND,
@@ -31,8 +32,6 @@ from beadsight.live.sensor import LiveSensor
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
-pytest.importorskip("foxglove", reason="the 'ros' extra is not installed")
-websockets_sync = pytest.importorskip("websockets.sync.client")
 LAYOUT = Path(__file__).resolve().parents[2] / "docs" / "foxglove-layout.json"
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 0x01  # binary opcode: u32 subscription id, u64 log time (ns), payload

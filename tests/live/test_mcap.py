@@ -15,8 +15,6 @@ from beadsight.live.readings import ReadingsFileError, open_readings
 from beadsight.live.ros_messages import FRAME_ID
 from beadsight.live.sensor import LiveSensor
 
-pytest.importorskip("mcap_ros2")
-
 
 def read_mcap(path) -> dict[str, list]:
     """topic -> [(schema name, log_time ns, decoded message)] with mcap's own reader."""

@@ -71,7 +71,6 @@ def test_hdf5_recording_on_a_full_disk_stops_and_keeps_what_it_wrote(model, pres
 
 
 def test_mcap_recording_on_a_full_disk_stops_and_keeps_what_it_wrote(model, presses, full_disk):
-    pytest.importorskip("mcap_ros2")
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
@@ -115,7 +114,6 @@ def test_a_write_that_fails_anyway_keeps_only_whole_readings(presses, full_disk,
 
 
 def test_an_mcap_write_that_fails_anyway_ends_the_file_after_whole_chunks(full_disk, monkeypatch):
-    pytest.importorskip("mcap_ros2")
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 

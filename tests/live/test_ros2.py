@@ -37,7 +37,6 @@ from beadsight.live.sensor import LiveSensor
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
-pytest.importorskip("cyclonedds", reason="the 'ros' extra is not installed")
 PEER = Path(__file__).with_name("ros2_peer.py")
 LOOPBACK_CONFIG = """<?xml version="1.0" encoding="UTF-8"?>
 <CycloneDDS xmlns="https://cdds.io/config">

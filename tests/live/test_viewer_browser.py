@@ -24,7 +24,8 @@ pytestmark = [
 
 
 def test_viewer_shows_live_readings_then_no_signal(tmp_path):
-    playwright_api = pytest.importorskip("playwright.sync_api")
+    from playwright import sync_api as playwright_api
+
     frames, _ = press_frames(presses=4, per_press=VIDEO_FRAMES // 4)
     video = write_video(tmp_path / "press.avi", frames, fps=VIDEO_FPS)
     checkpoint = tiny_model(scale_kpa=60.0).save(tmp_path / "tiny.pt")

@@ -469,8 +469,6 @@ def test_end_to_end_collect_process_train_evaluate(tmp_path):
     )
     with open_dataset(data) as ds:
         assert ds.num_presses == 5
-    pytest.importorskip("beadsight.train.trainer")
-    pytest.importorskip("beadsight.evaluation.evaluate")
     run(
         "train",
         "--data",

@@ -19,7 +19,8 @@ FIGURES = ["examples.png", "force_traces.png", "region_error.png", "learning_cur
 
 
 def test_calibration_report_in_chromium(make_dataset, tiny_model, tmp_path):
-    sync_api = pytest.importorskip("playwright.sync_api")
+    from playwright import sync_api
+
     base = tiny_model.save(tmp_path / "base.pt")
     out = tmp_path / "cal"
     data = make_dataset(presses=6)
