@@ -99,12 +99,12 @@ def _consumers(sensor: LiveSensor, ros2: bool, foxglove: bool, seconds: float):
     """Start the publishers, each with a consumer process attached and subscribed."""
     publishers, consumers = [], []
     if ros2:
-        from beadsight.live.ros2 import Ros2Publisher
+        from beadsight.live.outputs.ros2 import Ros2Publisher
 
         consumers.append(Consumer(str(PEER), str(DOMAIN), "/beadsight", str(seconds + 60)))
         publishers.append(Ros2Publisher(domain_id=DOMAIN))
     if foxglove:
-        from beadsight.live.foxglove import FoxgloveServer
+        from beadsight.live.outputs.foxglove import FoxgloveServer
 
         publishers.append(FoxgloveServer(sensor.geometry, port=0))
         url = publishers[-1].url
@@ -156,7 +156,7 @@ def run(name: str, args: argparse.Namespace) -> dict:
         "latency_p50_ms": float(p50),
         "latency_p99_ms": float(p99),
         "published": [p.published for p in publishers],
-        "dropped": [p.dropped for p in publishers],
+        "skipped": [p.skipped for p in publishers],
         "publish_ms": [1e3 * p.busy_s / max(p.published, 1) for p in publishers],
         "consumer_messages": received,
         "seconds": elapsed,
@@ -189,14 +189,14 @@ def main() -> int:
     print(cpu)
     print(
         f"{'outputs':<9} {'backend':<16} {'Hz':>6} {'skipped':>7} {'lat p50':>8} {'lat p99':>8} "
-        f"{'published':>10} {'dropped':>8} {'consumer msgs':>13} {'publish ms':>10}"
+        f"{'published':>10} {'skipped':>8} {'consumer msgs':>13} {'publish ms':>10}"
     )
     for r in results:
         print(
             f"{r['outputs']:<9} {r['backend'][:16]:<16} {r['readings_per_s']:6.1f} "
             f"{r['skipped_frames']:7d} {r['latency_p50_ms']:8.2f} {r['latency_p99_ms']:8.2f} "
             f"{'/'.join(map(str, r['published'])) or '-':>10} "
-            f"{'/'.join(map(str, r['dropped'])) or '-':>8} {r['consumer_messages']:13d} "
+            f"{'/'.join(map(str, r['skipped'])) or '-':>8} {r['consumer_messages']:13d} "
             f"{'/'.join(f'{x:.2f}' for x in r['publish_ms']) or '-':>10}"
         )
     base = [r for r in results if r["outputs"] == "none"]

@@ -10,7 +10,7 @@ Hz, no skipped frames) with the reference-size model, and reports its latency
 
 Each row runs a LiveSensor on the simulator (paced at --fps) for --seconds after the
 window has filled, optionally with the web viewer and one browser-like SSE client
-(--viewer) and the TCP stream with one reading client (--stream), and prints readings/s,
+(--viewer; ROS 2 and Foxglove: benchmarks/live_outputs.py), and prints readings/s,
 source frames/s, frames skipped because inference was slower than the camera, and
 latency / inference-time percentiles. Models without --checkpoint have random weights
 (same cost as trained ones).
@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import sys
 import threading
 import time
@@ -62,17 +61,6 @@ def _sse_client(url: str, stop: threading.Event, counter: list[int]) -> None:
                 counter[0] += 1
 
 
-def _stream_client(port: int, stop: threading.Event, counter: list[int]) -> None:
-    with socket.create_connection(("127.0.0.1", port)) as sock, sock.makefile("rb") as f:
-        while not stop.is_set():
-            line = f.readline()
-            if not line:
-                return
-            header = json.loads(line)
-            f.read(header["payload_bytes"])
-            counter[0] += header["type"] == "reading"
-
-
 def run(name: str, model: PressureModel, args: argparse.Namespace) -> dict:
     rows: list[tuple[float, float, float]] = []  # (arrival, latency, inference)
     recording = threading.Event()
@@ -85,22 +73,14 @@ def run(name: str, model: PressureModel, args: argparse.Namespace) -> dict:
     sensor = LiveSensor(model, "sim", settings)
     sensor.on_update(on_update)
     stop, threads, servers = threading.Event(), [], []
-    sse_count, stream_count = [0], [0]
+    sse_count = [0]
     with sensor:
         if args.viewer:
-            from beadsight.live.viewer.server import ViewerServer
+            from beadsight.live.outputs.viewer.server import ViewerServer
 
             servers.append(ViewerServer(sensor, port=0))
             threads.append(
                 threading.Thread(target=_sse_client, args=(servers[-1].url, stop, sse_count))
-            )
-        if args.stream:
-            from beadsight.live.stream import StreamServer
-
-            servers.append(StreamServer(sensor.geometry, port=0))
-            sensor.add_listener(servers[-1])
-            threads.append(
-                threading.Thread(target=_stream_client, args=(servers[-1].port, stop, stream_count))
             )
         for t in threads:
             t.start()
@@ -108,7 +88,7 @@ def run(name: str, model: PressureModel, args: argparse.Namespace) -> dict:
             if sensor.wait(0.05):
                 break
         skipped0 = sensor.stats().skipped_frames
-        sse_count[0] = stream_count[0] = 0  # count only what arrives while timing
+        sse_count[0] = 0  # count only what arrives while timing
         recording.set()
         start = time.monotonic()
         sensor.wait(args.seconds)
@@ -138,7 +118,6 @@ def run(name: str, model: PressureModel, args: argparse.Namespace) -> dict:
         "inference_p50_ms": float(inf[0]),
         "inference_p99_ms": float(inf[1]),
         "viewer_messages_per_s": sse_count[0] / elapsed if args.viewer else None,
-        "stream_readings_per_s": stream_count[0] / elapsed if args.stream else None,
         "seconds": elapsed,
     }
 
@@ -153,7 +132,6 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--warmup", type=int, default=30, help="readings before timing")
     parser.add_argument("--viewer", action="store_true", help="serve the viewer to one client")
-    parser.add_argument("--stream", action="store_true", help="stream to one TCP client")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     print(cpu_summary(), file=sys.stderr if getattr(args, "json", False) else sys.stdout)
@@ -167,7 +145,7 @@ def main() -> int:
         return 0
     print(
         f"live rate on the simulator at {args.fps:g} fps, {args.seconds:g} s per row "
-        f"(viewer: {args.viewer}, stream: {args.stream}); torch threads {torch.get_num_threads()}"
+        f"(viewer: {args.viewer}); torch threads {torch.get_num_threads()}"
     )
     head = (
         f"{'model':<28} {'backend':<18} {'Hz':>6} {'skipped':>7} {'lat p50':>8} "

@@ -1,6 +1,6 @@
 """How a live recording on the simulator follows the true force: lag, repeats, error.
 
-    beadsight live --source sim --no-viewer --no-stream --output rec.h5 --duration 120
+    beadsight live --source sim --no-viewer --output rec.h5 --duration 120
     PYTHONPATH=src .venv/bin/python benchmarks/live_response.py rec.h5 [--json]
 
 Reads a ``live --output`` readings file made on the simulator (it holds the simulator's
@@ -114,7 +114,7 @@ def _ms(seconds: float) -> float:
 
 
 def main() -> None:
-    from beadsight.live.readings import open_readings
+    from beadsight.live.recording.readings import open_readings
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("recording", type=Path, help="a live --output readings file (.h5) of the sim")

@@ -23,9 +23,9 @@ import time
 from beadsight.checkpoint import PressureModel
 from beadsight.inference.machine import cpu_summary
 from beadsight.live.bench import random_model
+from beadsight.live.outputs.viewer.server import ViewerServer
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.settings import LiveSettings
-from beadsight.live.viewer.server import ViewerServer
 
 REQUEST = b"GET /events HTTP/1.1\r\nHost: 127.0.0.1:%d\r\nAccept: text/event-stream\r\n\r\n"
 

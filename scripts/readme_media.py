@@ -135,8 +135,6 @@ def viewer_screenshot(path: Path) -> int:
             "sim",
             "--port",
             "0",
-            "--stream-port",
-            "0",
             "--record-dir",
             records,
             "--report-every",

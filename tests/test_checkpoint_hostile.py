@@ -104,7 +104,7 @@ def test_every_command_refuses_a_forged_array(tmp_path, forged, make_dataset):
         ["info", ckpt],
         ["evaluate", "--checkpoint", ckpt, "--data", str(data), "--out", str(tmp_path / "ev")],
         ["predict", "--checkpoint", ckpt, "--input", str(data), "--out", str(tmp_path / "p.h5")],
-        ["live", "--checkpoint", ckpt, "--frames", "2", "--no-viewer", "--no-stream"],
+        ["live", "--checkpoint", ckpt, "--frames", "2", "--no-viewer"],
         [
             "train",
             "--data",
@@ -281,7 +281,7 @@ def test_predict_and_live_refuse_a_nan_model(bad_checkpoints, make_dataset, tmp_
         out = tmp_path / f"{name}.h5"
         assert main(["predict", "--checkpoint", path, "--input", str(data), "--out", str(out)]) == 1
         assert f"{path}: " in capsys.readouterr().err and not out.exists()
-        argv = ["live", "--checkpoint", path, "--frames", "2", "--no-viewer", "--no-stream"]
+        argv = ["live", "--checkpoint", path, "--frames", "2", "--no-viewer"]
         assert main(argv) == 1
         assert f"{path}: " in capsys.readouterr().err
 

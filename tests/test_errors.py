@@ -13,7 +13,7 @@ from beadsight.data.recording import RecordingError
 from beadsight.devices.base import DeviceError
 from beadsight.errors import USER_ERRORS, BeadSightError, ConfigError
 from beadsight.files import WriteError
-from beadsight.live.readings import ReadingsFileError
+from beadsight.live.recording.readings import ReadingsFileError
 from beadsight.preprocess import FrameSizeError
 from beadsight.sim.dataset import SimulationError
 

@@ -21,7 +21,7 @@ from beadsight.cli import main
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import FORMAT, DatasetError, open_dataset
 from beadsight.h5safe import MAX_FILTER_RATIO, check_dataset
-from beadsight.live.readings import ReadingsFileError, ReadingsWriter, open_readings
+from beadsight.live.recording.readings import ReadingsFileError, ReadingsWriter, open_readings
 
 ROWS = 10**9  # what the forged files claim
 SIZE = 32  # image side of the small files, px

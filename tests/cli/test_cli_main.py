@@ -140,8 +140,8 @@ def test_cli_defaults_are_the_config_dataclasses_defaults():
 def test_evaluate_predict_and_live_defaults_are_the_library_defaults():
     from beadsight.evaluation.evaluate import evaluate
     from beadsight.evaluation.predict import predict_recording
-    from beadsight.live.stream import DEFAULT_PORT as STREAM_PORT
-    from beadsight.live.viewer.server import ViewerServer
+    from beadsight.live.config import LiveRunConfig
+    from beadsight.live.outputs.viewer.server import ViewerServer
 
     def assert_defaults(args, function, *names: str) -> None:
         defaults = inspect.signature(function).parameters
@@ -153,7 +153,13 @@ def test_evaluate_predict_and_live_defaults_are_the_library_defaults():
     assert_defaults(args, predict_recording, "preprocess", "batch_size", "device")
     args = _parse("live")
     assert_defaults(args, ViewerServer, "host", "port", "max_fps", "max_kpa")
-    assert args.stream_port == STREAM_PORT
+    config = LiveRunConfig()
+    assert (args.foxglove_port, args.max_age, args.ros_namespace) == (
+        config.foxglove_port,
+        config.max_age_s,
+        config.ros_namespace,
+    )
+    assert config.foxglove_port == 8765  # Foxglove's usual port (issue 27)
 
 
 def test_user_errors_are_one_line(tmp_path, capsys):

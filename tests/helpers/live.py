@@ -1,4 +1,4 @@
-"""Shared pieces of the live/viewer/stream/rosbag tests: tiny models, synthetic presses, and
+"""Shared pieces of the live/outputs/viewer/stream/rosbag tests: tiny models, synthetic presses, and
 a scripted camera (one that never skips frames and can fail on cue)."""
 
 from __future__ import annotations

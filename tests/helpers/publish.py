@@ -52,14 +52,14 @@ class PacedSource(ScriptedSource):
 
 
 def live_without(module: str, *args: str) -> list[str]:
-    """``beadsight live --no-viewer --no-stream ARGS`` in a fresh interpreter where
+    """``beadsight live --no-viewer ARGS`` in a fresh interpreter where
     ``module`` is not installed; returns its stderr lines (it must exit 1)."""
     done = run_isolated(
         f"""
         import sys
         sys.modules[{module!r}] = None  # as if not installed
         from beadsight.cli import main
-        sys.exit(main(["live", "--no-viewer", "--no-stream", *{list(args)!r}]))
+        sys.exit(main(["live", "--no-viewer", *{list(args)!r}]))
         """
     )
     assert done.returncode == 1, done.stderr

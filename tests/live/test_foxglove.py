@@ -27,7 +27,7 @@ from helpers.live import (
 from helpers.publish import HEALTH_STATES, HealthTagger, PacedSource, live_without
 
 from beadsight.cli import main
-from beadsight.live import ros_messages as msg
+from beadsight.live.ros import messages as msg
 from beadsight.live.sensor import LiveSensor
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
@@ -135,7 +135,7 @@ def test_beadsight_live_foxglove_serves_every_channel():
     """`beadsight live --source sim --foxglove`: a client sees the advertised channels and
     receives each; the Grid, placed by its pose, gives the reading's force and CoP."""
     run = Beadsight(
-        *("live", "--source", "sim", "--no-viewer", "--no-stream", "--backend", "torch"),
+        *("live", "--source", "sim", "--no-viewer", "--backend", "torch"),
         *("--foxglove", "--foxglove-port", "0", "--frames", "600"),
     )
     try:
@@ -181,7 +181,7 @@ def test_beadsight_live_foxglove_serves_every_channel():
 def test_health_reaches_the_client_and_the_app_status(tmp_path):
     """Health states on /beadsight/health as they change, and poor health as a status
     (the Foxglove app's problems list): warning when drifting, error to recalibrate."""
-    from beadsight.live.foxglove import HEALTH_STATUS_ID, FoxgloveServer
+    from beadsight.live.outputs.foxglove import HEALTH_STATUS_ID, FoxgloveServer
 
     frames, _ = press_frames(presses=3, per_press=30)
     sensor = LiveSensor(tiny_model(), PacedSource(frames, fps=60.0), **BACKEND)
@@ -219,7 +219,7 @@ def test_health_reaches_the_client_and_the_app_status(tmp_path):
 def test_layout_shows_our_channels():
     """docs/foxglove-layout.json: every panel placed, and every topic and field it shows is
     one the server publishes (camera, pressure map and grid, force plot, health)."""
-    from beadsight.live.foxglove import HEALTH_SCHEMA, READING_SCHEMA
+    from beadsight.live.outputs.foxglove import HEALTH_SCHEMA, READING_SCHEMA
 
     layout = json.loads(LAYOUT.read_text())
     config = layout["configById"]
@@ -259,7 +259,7 @@ def test_foxglove_errors_are_one_line(capsys):
         taken.listen()
         port = taken.getsockname()[1]
         code = main(
-            ["live", "--source", "sim", "--no-viewer", "--no-stream", "--backend", "torch"]
+            ["live", "--source", "sim", "--no-viewer", "--backend", "torch"]
             + ["--foxglove", "--foxglove-port", str(port), "--frames", "1"]
         )
     err = capsys.readouterr().err.strip()

@@ -10,9 +10,9 @@ import pytest
 from helpers.live import BACKEND, SPAN, ScriptedSource, press_frames, tiny_model
 
 from beadsight.cli import main
-from beadsight.live.mcap import TOPIC_COP, TOPIC_FORCE, TOPIC_PRESSURE, export_mcap
-from beadsight.live.readings import ReadingsFileError, open_readings
-from beadsight.live.ros_messages import FRAME_ID
+from beadsight.live.recording.mcap import TOPIC_COP, TOPIC_FORCE, TOPIC_PRESSURE, export_mcap
+from beadsight.live.recording.readings import ReadingsFileError, open_readings
+from beadsight.live.ros.messages import FRAME_ID
 from beadsight.live.sensor import LiveSensor
 
 
@@ -143,7 +143,7 @@ def test_nan_free_messages_for_frames_without_pressure(tmp_path):
     from types import SimpleNamespace
 
     from beadsight.config import SensorGeometry
-    from beadsight.live.mcap import McapReadingsWriter
+    from beadsight.live.recording.mcap import McapReadingsWriter
 
     zero = SimpleNamespace(
         pressure_kpa=np.zeros((8, 8), np.float32),

@@ -10,12 +10,12 @@ from helpers.live import wait_until
 from helpers.publish import Health
 
 from beadsight.live.listeners import LiveStatus
-from beadsight.live.publisher import BackgroundPublisher
+from beadsight.live.outputs.base import OutputListener
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 
-class Recorder(BackgroundPublisher):
+class Recorder(OutputListener):
     """Publishes into a list, each publish waiting until ``gate`` opens."""
 
     name = "recorder"
@@ -24,7 +24,7 @@ class Recorder(BackgroundPublisher):
         self.gate = threading.Event()
         self.events: list = []
         self.closed = False
-        super().__init__(queue_size)
+        super().__init__(queue_size=queue_size)
 
     def publish(self, update) -> None:
         self.gate.wait(10)
@@ -60,7 +60,7 @@ def test_slow_publisher_drops_oldest_readings_keeps_state_changes_in_order():
         pub.push(Update(i))
     pub.status(LiveStatus("ended", "end of video", 1.0))
     pub.push(Update(8))
-    assert pub.dropped == 5 and pub._queued == 3  # 1..5 dropped; 6, 7 and 8 wait
+    assert pub.skipped == 5 and pub._queued == 3  # 1..5 skipped; 6, 7 and 8 wait
     pub.gate.set()
     pub.finish()
     assert pub.events == [

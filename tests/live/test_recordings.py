@@ -26,10 +26,10 @@ from helpers.live import (
 from beadsight.cli import main
 from beadsight.files import WriteError
 from beadsight.geometry import total_force_n
-from beadsight.live.readings import ReadingsWriter, open_readings
-from beadsight.live.recorder import OutputExistsError
+from beadsight.live.outputs.viewer.server import ViewerServer
+from beadsight.live.recording.readings import ReadingsWriter, open_readings
+from beadsight.live.recording.recorder import OutputExistsError
 from beadsight.live.sensor import LiveSensor
-from beadsight.live.viewer.server import ViewerServer
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
@@ -117,7 +117,7 @@ def test_an_mcap_write_that_fails_anyway_ends_the_file_after_whole_chunks(full_d
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
-    import beadsight.live.mcap as mcap_module
+    import beadsight.live.recording.mcap as mcap_module
 
     monkeypatch.setattr(mcap_module.McapReadingsWriter, "_room", lambda self: 1 << 40)
     monkeypatch.setattr(mcap_module, "CHUNK_BYTES", 48 * 1024)  # chunks of 3 readings
@@ -166,7 +166,6 @@ def test_cli_live_output_on_a_full_disk_exits_non_zero(model, full_disk, tmp_pat
         "--precision",
         "fp32",
         "--no-viewer",
-        "--no-stream",
         "--output",
         str(out),
         "--duration",
@@ -236,7 +235,6 @@ def test_cli_live_output_refuses_an_existing_dataset(model, make_dataset, tmp_pa
         "--precision",
         "fp32",
         "--no-viewer",
-        "--no-stream",
         "--frames",
         "3",
         "--output",

@@ -32,7 +32,7 @@ from helpers.publish import Health, HealthTagger, PacedSource, live_without
 
 from beadsight.cli import main
 from beadsight.errors import BeadSightError
-from beadsight.live import ros_messages as msg
+from beadsight.live.ros import messages as msg
 from beadsight.live.sensor import LiveSensor
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
@@ -132,8 +132,10 @@ def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path):
     domain, _ = dds
     peer = Peer(domain)
     out = tmp_path / "readings.h5"
+    # --max-age 30: every reading must arrive, also when a loaded machine stalls the
+    # publisher for over the default 0.5 s (the age rule has its own test)
     run = Beadsight(
-        *("live", "--source", "sim", "--no-viewer", "--no-stream", "--frames", "130"),
+        *("live", "--source", "sim", "--no-viewer", "--frames", "130", "--max-age", "30"),
         *("--ros2", "--ros-domain", str(domain), "--output", str(out), "--backend", "torch"),
     )
     run.wait_line(rf"ros2: domain {domain}: /beadsight/pressure, /beadsight/force", 60)
@@ -189,12 +191,12 @@ def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path):
         msg.FRAME_ID,
     )
     assert "camera" not in got
-    assert f"ros2: published {len(t)} readings, dropped 0" in run.rest()
+    assert f"ros2: published {len(t)} readings, skipped 0" in run.rest()
 
 
 # --- in process: health, camera, a namespace; the wire format ------------------------------
 def test_health_camera_and_namespace_reach_the_subscriber(dds):
-    from beadsight.live.ros2 import Ros2Publisher
+    from beadsight.live.outputs.ros2 import Ros2Publisher
 
     domain, _ = dds
     namespace = "/robot/left_finger"
@@ -204,7 +206,7 @@ def test_health_camera_and_namespace_reach_the_subscriber(dds):
     updates = []
     sensor.on_update(updates.append)
     sensor.open()
-    publisher = Ros2Publisher(namespace, domain, camera=True, queue_size=64)
+    publisher = Ros2Publisher(namespace, domain, camera=True, max_age_s=30, queue_size=64)
     assert publisher.topics()[f"{namespace}/camera"] == "sensor_msgs/msg/Image"
     wait_until(lambda: all(n == 1 for n in publisher.subscribers().values()), 20, "matching")
     sensor.add_listener(HealthTagger(publisher, total=len(frames) - sensor.model.span + 1))
@@ -213,7 +215,7 @@ def test_health_camera_and_namespace_reach_the_subscriber(dds):
     sensor.stop()
     publisher.finish()
     got = peer.messages()
-    assert (publisher.published, publisher.dropped, publisher.errors) == (len(updates), 0, 0)
+    assert (publisher.published, publisher.skipped, publisher.errors) == (len(updates), 0, 0)
     # the camera: rgb8, the model-input frames bit for bit
     by_time = {u.reading.timestamp_s: u for u in updates}
     assert len(got["camera"]) == len(updates)
@@ -245,7 +247,8 @@ def test_messages_decode_with_rosbags(dds):
     ROS 2 type store into the values of the reading."""
     from rosbags.typesys import Stores, get_typestore
 
-    from beadsight.live.ros2 import TOPIC_TYPES, Ros2Publisher, _build
+    from beadsight.live.outputs.ros2 import Ros2Publisher, _build
+    from beadsight.live.ros.types import TOPIC_TYPES
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     domain, _ = dds
@@ -295,7 +298,7 @@ def test_messages_decode_with_rosbags(dds):
 
 # --- the command line: options, defaults, errors -----------------------------------------
 def test_ros_domain_defaults_to_ros_domain_id(monkeypatch):
-    from beadsight.live.ros2 import domain_from_environment
+    from beadsight.live.outputs.ros2 import domain_from_environment
 
     assert domain_from_environment({}) == 0
     assert domain_from_environment({"ROS_DOMAIN_ID": " 42 "}) == 42

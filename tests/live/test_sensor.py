@@ -29,12 +29,13 @@ from helpers.live import (
 from beadsight.cli import main
 from beadsight.devices.virtual import PlaybackCamera
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
-from beadsight.live.readings import ReadingsFileError, open_readings
+from beadsight.live.config import LiveRunConfig
+from beadsight.live.outputs.viewer.server import ViewerServer
+from beadsight.live.recording.readings import ReadingsFileError, open_readings
 from beadsight.live.run import run_live
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.settings import LiveSettings
 from beadsight.live.sources import frame_converter
-from beadsight.live.viewer.server import ViewerServer
 from beadsight.preprocess import FrameSizeError, Preprocessor
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
@@ -293,7 +294,9 @@ def test_run_live_headless_stops_after_n_frames(model, presses, tmp_path):
     frames, _ = presses
     lines = []
     sensor = LiveSensor(model, ScriptedSource(frames), replace(TORCH, max_readings=10))
-    stats = run_live(sensor, viewer=False, output=tmp_path / "r.h5", echo=lines.append)
+    stats = run_live(
+        sensor, LiveRunConfig(viewer=False, output=tmp_path / "r.h5"), echo=lines.append
+    )
     assert stats.readings == 10
     assert sensor.status.state == "ended" and "10 readings" in sensor.status.message
     assert f"wrote {tmp_path / 'r.h5'}" in lines
@@ -359,7 +362,8 @@ def _post(url: str, body: dict) -> dict:
 
 
 def test_viewer_images_use_the_fixed_colour_scale():
-    from beadsight.live.viewer.server import colormap_bgr, contact_outlines, encode_map
+    from beadsight.live.outputs.colormap import colormap_bgr
+    from beadsight.live.outputs.viewer.server import contact_outlines, encode_map
 
     lut = colormap_bgr()
     kpa = np.zeros((64, 64), np.float32)
@@ -429,7 +433,7 @@ def test_cli_live_headless_writes_readings(model, presses, tmp_path):
     video = write_video(tmp_path / "v.avi", frames[:30], fps=60)
     checkpoint = model.save(tmp_path / "tiny.pt")
     out = tmp_path / "readings.h5"
-    more = ["--no-viewer", "--no-stream", "--output", str(out), "--frames", "5"]
+    more = ["--no-viewer", "--output", str(out), "--frames", "5"]
     code = main(live_argv(checkpoint, video, *more, "--loop"))  # --loop: 5 readings always come
     assert code == 0
     with open_readings(out) as rf:
@@ -440,7 +444,7 @@ def test_cli_live_headless_writes_readings(model, presses, tmp_path):
 def test_cli_live_reports_bad_source_size_as_one_line(model, tmp_path, capsys):
     video = write_video(tmp_path / "wide.avi", np.zeros((20, 48, 80, 3), np.uint8))
     checkpoint = model.save(tmp_path / "tiny.pt")
-    code = main(live_argv(checkpoint, video, "--no-viewer", "--no-stream"))
+    code = main(live_argv(checkpoint, video, "--no-viewer"))
     assert code == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "80x48" in err[0] and "64x64" in err[0]
@@ -461,7 +465,6 @@ def test_cli_live_sim_headless_straight_to_mcap(model, tmp_path, capsys):
             "--precision",
             "fp32",
             "--no-viewer",
-            "--no-stream",
             "--output",
             str(out),
             "--frames",
@@ -483,7 +486,7 @@ def test_cli_live_user_errors_are_one_line(model, tmp_path, capsys, monkeypatch)
     import beadsight.checkpoint
 
     monkeypatch.setattr(beadsight.checkpoint, "SHIPPED_MODEL", "absent.pt")
-    assert main(["live", "--no-viewer", "--no-stream"]) == 1
+    assert main(["live", "--no-viewer"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "absent.pt" in err[0] and "--checkpoint" in err[0]
     checkpoint = model.save(tmp_path / "tiny.pt")

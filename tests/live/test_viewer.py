@@ -12,9 +12,9 @@ from dataclasses import replace
 import pytest
 from helpers.live import TORCH, wait_until
 
+from beadsight.live.outputs.viewer.http import host_allowed, host_name
+from beadsight.live.outputs.viewer.server import ViewerServer
 from beadsight.live.sensor import LiveSensor
-from beadsight.live.viewer.http import host_allowed, host_name
-from beadsight.live.viewer.server import ViewerServer
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 

@@ -12,7 +12,7 @@ import pytest
 from helpers.browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, Beadsight
 from helpers.live import live_argv, press_frames, tiny_model, write_video
 
-from beadsight.live.readings import open_readings
+from beadsight.live.recording.readings import open_readings
 
 VIDEO_FPS = 30
 VIDEO_FRAMES = 210  # 7 s: long enough to load the page and watch it update
@@ -32,7 +32,7 @@ def test_viewer_shows_live_readings_then_no_signal(tmp_path):
     ARTIFACTS.mkdir(exist_ok=True)
     with playwright_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        more = ["--port", "0", "--stream-port", "0", "--record-dir", str(tmp_path)]
+        more = ["--port", "0", "--record-dir", str(tmp_path)]
         live = Beadsight(*live_argv(checkpoint, video, *more, "--report-every", "1"))
         proc = live.proc
         try:

@@ -69,18 +69,17 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _output_arguments(p: argparse.ArgumentParser) -> None:
-    """Where the readings go: the web viewer and the TCP stream."""
+    """Where the readings go: the web viewer (ROS 2 and Foxglove: _robot_arguments)."""
     from beadsight.cli.options import add_option
     from beadsight.live.config import (
         DEFAULT_HOST,
-        STREAM_MAX_AGE_S,
-        STREAM_PORT,
+        MAX_AGE_S,
         VIEWER_MAX_FPS,
         VIEWER_MAX_KPA,
         VIEWER_PORT,
     )
 
-    add_option(p, "--host", DEFAULT_HOST, "address of the viewer and stream")
+    add_option(p, "--host", DEFAULT_HOST, "address of the viewer and the Foxglove server")
     add_option(p, "--port", VIEWER_PORT, "viewer port (0 = any free port)")
     p.add_argument("--no-viewer", action="store_true", help="headless: no web viewer")
     add_option(p, "--max-fps", VIEWER_MAX_FPS, "viewer updates per second")
@@ -91,13 +90,12 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
         default=Path("."),
         help="folder for the viewer's record button (default: current folder)",
     )
-    add_option(p, "--stream-port", STREAM_PORT, "TCP port of the readings stream (0 = any)")
-    p.add_argument("--no-stream", action="store_true", help="no TCP readings stream")
     add_option(
         p,
-        "--stream-max-age",
-        STREAM_MAX_AGE_S,
-        "the stream never sends a reading older than this, s (slow clients skip readings)",
+        "--max-age",
+        MAX_AGE_S,
+        "ROS 2 and Foxglove never publish a reading older than this, s (slow clients skip "
+        "readings)",
     )
 
 
@@ -142,23 +140,17 @@ def _robot_arguments(p: argparse.ArgumentParser) -> None:
     add_option(g, "--foxglove-port", FOXGLOVE_PORT, "Foxglove WebSocket port (0 = any free port)")
 
 
-def _ros2_options(args: argparse.Namespace) -> dict:
-    from beadsight.live.ros2 import domain_from_environment
-
-    domain = args.ros_domain if args.ros_domain is not None else domain_from_environment()
-    return {"namespace": args.ros_namespace, "domain_id": domain, "camera": args.ros_camera}
-
-
 def run_live_command(args: argparse.Namespace) -> int:
     """Pressure readings from a camera, video or the simulator, with a web viewer.
 
     Run a checkpoint on frames from a camera, a video file or the simulator at the camera
     rate. Serves a web viewer (camera, kPa map, force trace, rate and latency, record
-    button) and a TCP stream of readings for robot programs (docs/live.md); --ros2
-    publishes ROS 2 topics, --foxglove serves Foxglove; --output records readings to HDF5
-    or MCAP.
+    button); for robot programs --ros2 publishes ROS 2 topics and --foxglove serves
+    Foxglove's WebSocket protocol (docs/live.md); --output records readings to HDF5 or
+    MCAP.
     """
     from beadsight.cli.options import given
+    from beadsight.live.config import LiveRunConfig
     from beadsight.live.run import run_live
     from beadsight.live.sensor import LiveSensor
     from beadsight.live.settings import LiveSettings
@@ -172,29 +164,32 @@ def run_live_command(args: argparse.Namespace) -> int:
         sim_drift=args.sim_drift,
         **given(backend=args.backend, precision=args.precision, seed=args.seed),
     )
-    sensor = LiveSensor(args.checkpoint, settings=settings, **given(source=args.source))
-    run_live(
-        sensor,
+    ros_domain = args.ros_domain
+    if ros_domain is None:  # ROS 2 nodes read $ROS_DOMAIN_ID; beadsight only for --ros2
+        from beadsight.live.outputs.ros2 import domain_from_environment
+
+        ros_domain = domain_from_environment() if args.ros2 else 0
+    config = LiveRunConfig(
         viewer=not args.no_viewer,
         host=args.host,
         port=args.port,
-        viewer_options={
-            "max_fps": args.max_fps,
-            "max_kpa": args.max_kpa,
-            "record_dir": args.record_dir,
-        },
-        stream_port=None if args.no_stream else args.stream_port,
-        stream_options={"max_age_s": args.stream_max_age},
+        max_fps=args.max_fps,
+        max_kpa=args.max_kpa,
+        record_dir=args.record_dir,
         ros2=args.ros2,
-        ros2_options=_ros2_options(args) if args.ros2 else None,
-        foxglove_port=args.foxglove_port if args.foxglove else None,
-        foxglove_options={"max_kpa": args.max_kpa, "namespace": args.ros_namespace},
+        ros_domain=ros_domain,
+        ros_namespace=args.ros_namespace,
+        ros_camera=args.ros_camera,
+        foxglove=args.foxglove,
+        foxglove_port=args.foxglove_port,
+        max_age_s=args.max_age,
         output=args.output,
         overwrite=args.overwrite,
         duration_s=args.duration,
         **given(report_every_s=args.report_every),
-        echo=lambda line: print(line, flush=True),
     )
+    sensor = LiveSensor(args.checkpoint, settings=settings, **given(source=args.source))
+    run_live(sensor, config, echo=lambda line: print(line, flush=True))
     return 0
 
 
@@ -205,7 +200,7 @@ def run_to_mcap(args: argparse.Namespace) -> int:
     geometry_msgs/msg/WrenchStamped (force.z, N), centre of pressure as
     geometry_msgs/msg/PointStamped (m, frame 'beadsight'); stamps = capture times.
     """
-    from beadsight.live.mcap import export_mcap
+    from beadsight.live.recording.mcap import export_mcap
 
     print(f"wrote {export_mcap(args.readings, args.out, overwrite=args.overwrite)}")
     return 0

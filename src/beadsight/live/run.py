@@ -1,6 +1,6 @@
 """Running a :class:`~beadsight.live.sensor.LiveSensor` from the command line: the viewer,
-the stream, ROS 2 topics, the Foxglove server, a recording, periodic reports, until the
-end, a duration or Ctrl-C."""
+ROS 2 topics, the Foxglove server, a recording, periodic reports, until the end, a
+duration or Ctrl-C; what to run is one :class:`~beadsight.live.config.LiveRunConfig`."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
+from beadsight.live.config import LiveRunConfig
 from beadsight.live.listeners import LiveStatus, LiveUpdate
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.stats import LiveStats
@@ -33,43 +33,20 @@ class _Wake:
 
 
 def run_live(
-    sensor: LiveSensor,
-    *,
-    viewer: bool = True,
-    host: str = "127.0.0.1",
-    port: int = 8000,
-    viewer_options: dict[str, Any] | None = None,
-    stream_port: int | None = None,
-    stream_options: dict[str, Any] | None = None,
-    ros2: bool = False,
-    ros2_options: dict[str, Any] | None = None,
-    foxglove_port: int | None = None,
-    foxglove_options: dict[str, Any] | None = None,
-    output: str | Path | None = None,
-    overwrite: bool = False,
-    duration_s: float | None = None,
-    report_every_s: float = 5.0,
-    echo: Callable[[str], None] = print,
+    sensor: LiveSensor, config: LiveRunConfig = LiveRunConfig(), echo: Callable[[str], None] = print
 ) -> LiveStats:
-    """Run ``sensor`` with the viewer / stream / recording asked for, reporting stats every
-    ``report_every_s``, until sensing ends (source end, ``max_readings``), ``duration_s``
-    or Ctrl-C. With the viewer on, the end of sensing leaves the page up (showing "no
-    signal") until Ctrl-C or ``duration_s``. The recording and the stream get every
-    reading from the first. An existing ``output`` is refused unless ``overwrite``; a
-    recording that fails (disk full) ends the run. Returns the final stats; re-raises the
-    error that stopped sensing or the recording, if any.
-
-    viewer_options: keyword arguments of :class:`~beadsight.live.viewer.server.ViewerServer`
-    (max_fps, max_kpa, history_s, record_dir). stream_options: keyword arguments of
-    :class:`~beadsight.live.stream.StreamServer` (max_age_s). ros2: publish ROS 2 topics
-    with :class:`~beadsight.live.ros2.Ros2Publisher` (``ros2_options``: namespace,
-    domain_id, camera). foxglove_port: serve Foxglove on ``host:foxglove_port`` with
-    :class:`~beadsight.live.foxglove.FoxgloveServer` (``foxglove_options``: max_kpa,
-    namespace). Both publish from their own threads (sensing never waits for them); a
-    missing optional package is refused before the model loads.
+    """Run ``sensor`` with the outputs and recording ``config`` asks for, reporting stats
+    every ``config.report_every_s``, until sensing ends (source end, ``max_readings``),
+    ``config.duration_s`` or Ctrl-C. With the viewer on, the end of sensing leaves the page
+    up (showing "no signal") until Ctrl-C or the duration. The recording gets every reading
+    from the first; ROS 2 and Foxglove publish from their own threads under the slow-client
+    rule (:class:`~beadsight.live.outputs.base.OutputListener`). An existing
+    ``config.output`` is refused unless ``config.overwrite``; a recording that fails (disk
+    full) ends the run. A missing optional package is refused before the model loads.
+    Returns the final stats; re-raises the error that stopped sensing or the recording.
     """
     wake, servers, publishers, failed = threading.Event(), [], [], threading.Event()
-    kinds = _publisher_options(ros2, ros2_options, foxglove_port, foxglove_options)
+    _require_packages(config)
 
     def recording_failed(error: BaseException) -> None:
         failed.set()
@@ -78,27 +55,30 @@ def run_live(
     sensor.open()
     try:
         sensor.add_listener(_Wake(wake))
-        if output is not None:
-            path = sensor.start_recording(output, overwrite=overwrite, on_error=recording_failed)
+        if config.output is not None:
+            path = sensor.start_recording(
+                config.output, overwrite=config.overwrite, on_error=recording_failed
+            )
             echo(f"recording to {path}")
-        if stream_port is not None:
-            from beadsight.live.stream import StreamServer
+        for publisher in _start_publishers(config, sensor, echo):
+            publishers.append(publisher)
+            sensor.add_listener(publisher)
+        if config.viewer:
+            from beadsight.live.outputs.viewer.server import ViewerServer
 
             servers.append(
-                StreamServer(sensor.geometry, host, stream_port, **(stream_options or {}))
+                ViewerServer(
+                    sensor,
+                    config.host,
+                    config.port,
+                    max_fps=config.max_fps,
+                    max_kpa=config.max_kpa,
+                    record_dir=config.record_dir,
+                )
             )
-            sensor.add_listener(servers[-1])
-            echo(f"stream: tcp://{servers[-1].host}:{servers[-1].port} (see docs/live.md)")
-        for kind, options in kinds:
-            publishers.append(_start_publisher(kind, options, sensor, host, echo))
-            sensor.add_listener(publishers[-1])
-        if viewer:
-            from beadsight.live.viewer.server import ViewerServer
-
-            servers.append(ViewerServer(sensor, host, port, **(viewer_options or {})))
             echo(f"viewer: {servers[-1].url}")
         sensor.start()
-        _wait(sensor, wake, viewer, duration_s, report_every_s, echo, failed)
+        _wait(sensor, wake, config, echo, failed)
     except KeyboardInterrupt:
         echo("interrupted: stopping")
     finally:
@@ -110,40 +90,47 @@ def run_live(
     return stats
 
 
-def _publisher_options(
-    ros2: bool,
-    ros2_options: dict[str, Any] | None,
-    foxglove_port: int | None,
-    foxglove_options: dict[str, Any] | None,
-) -> list[tuple[str, dict[str, Any]]]:
-    """The publishers asked for, as (kind, keyword arguments), checked now (packages
-    installed, valid settings) so that a mistake is refused before the model loads."""
-    kinds = []
-    if ros2:
-        from beadsight.live.ros2 import check_options
+def _require_packages(config: LiveRunConfig) -> None:
+    """Refuse now (before the model loads) an output whose optional package is missing."""
+    if config.ros2:
+        from beadsight.live.outputs.ros2 import require_cyclonedds
 
-        kinds.append(("ros2", check_options(**(ros2_options or {}))))
-    if foxglove_port is not None:
-        from beadsight.live.foxglove import check_options
+        require_cyclonedds()
+    if config.foxglove:
+        from beadsight.live.outputs.foxglove import require_foxglove
 
-        kinds.append(("foxglove", check_options(port=foxglove_port, **(foxglove_options or {}))))
-    return kinds
+        require_foxglove()
 
 
-def _start_publisher(
-    kind: str, options: dict[str, Any], sensor: LiveSensor, host: str, echo: Callable
-) -> Any:
-    if kind == "ros2":
-        from beadsight.live.ros2 import Ros2Publisher
+def _start_publishers(config: LiveRunConfig, sensor: LiveSensor, echo: Callable) -> list[Any]:
+    started = []
+    if config.ros2:
+        from beadsight.live.outputs.ros2 import Ros2Publisher
 
-        publisher = Ros2Publisher(**options)
-        echo(f"ros2: domain {publisher.domain_id}: {', '.join(publisher.topics())}")
-        return publisher
-    from beadsight.live.foxglove import FoxgloveServer
+        started.append(
+            Ros2Publisher(
+                config.ros_namespace,
+                config.ros_domain,
+                config.ros_camera,
+                max_age_s=config.max_age_s,
+            )
+        )
+        echo(f"ros2: domain {config.ros_domain}: {', '.join(started[-1].topics())}")
+    if config.foxglove:
+        from beadsight.live.outputs.foxglove import FoxgloveServer
 
-    server = FoxgloveServer(sensor.geometry, host, **options)
-    echo(f"foxglove: {server.url} (layout: docs/foxglove-layout.json)")
-    return server
+        started.append(
+            FoxgloveServer(
+                sensor.geometry,
+                config.host,
+                config.foxglove_port,
+                config.ros_namespace,
+                config.max_kpa,
+                max_age_s=config.max_age_s,
+            )
+        )
+        echo(f"foxglove: {started[-1].url} (layout: docs/foxglove-layout.json)")
+    return started
 
 
 def _finish(
@@ -164,11 +151,12 @@ def _finish(
             publisher.finish()  # also when sensing never started
             echo(
                 f"{publisher.name}: published {publisher.published} readings, "
-                f"dropped {publisher.dropped}"
+                f"skipped {publisher.skipped}"
             )
 
 
-def _wait(sensor, wake, viewer, duration_s, report_every_s, echo, failed) -> None:
+def _wait(sensor, wake, config: LiveRunConfig, echo, failed) -> None:
+    viewer, duration_s, report_every_s = config.viewer, config.duration_s, config.report_every_s
     now = time.monotonic()
     deadline = math.inf if duration_s is None else now + duration_s
     next_report = now + report_every_s

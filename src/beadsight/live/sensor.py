@@ -70,7 +70,7 @@ from beadsight.live.listeners import (
     LiveUpdate,
     UpdateQueue,
 )
-from beadsight.live.recorder import RecordingSlot
+from beadsight.live.recording.recorder import RecordingSlot
 from beadsight.live.settings import LiveSettings
 from beadsight.live.sources import frame_converter, open_camera
 from beadsight.live.stats import LiveStats, RateMeter

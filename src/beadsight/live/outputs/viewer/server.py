@@ -13,7 +13,7 @@ Routes:
   recording readings to a new HDF5 file in ``record_dir`` (a new name each time).
 
 Requests for another ``Host`` than this machine's are refused (DNS rebinding), slow
-requests time out (see :mod:`beadsight.live.viewer.http`).
+requests time out (see :mod:`beadsight.live.outputs.viewer.http`).
 
 A state message: ``status`` (state, message), ``stats`` (rate, latency percentiles),
 ``reading`` (force, centre of pressure, contact area, ...; null before the first),
@@ -26,7 +26,7 @@ the last recording stopped by itself, e.g. a full disk; else null).
 
 The viewer is a :class:`beadsight.live.listeners.LiveListener`: the sensing thread only stores a
 reference to the newest update and appends one trace point. One thread serves every
-browser (:mod:`beadsight.live.viewer.events`): it builds the state and encodes the
+browser (:mod:`beadsight.live.outputs.viewer.events`): it builds the state and encodes the
 images at most ``max_fps`` times a second, once for all; a slow browser only misses
 messages.
 """
@@ -53,31 +53,25 @@ from beadsight.live.config import DEFAULT_HOST
 from beadsight.live.config import VIEWER_MAX_FPS as DEFAULT_MAX_FPS
 from beadsight.live.config import VIEWER_MAX_KPA as DEFAULT_MAX_KPA
 from beadsight.live.config import VIEWER_PORT as DEFAULT_PORT
-from beadsight.live.recorder import unique_recording_path
-from beadsight.live.ros_messages import health_report
-from beadsight.live.viewer.events import (
+from beadsight.live.outputs.colormap import colormap_bgr, colour_indices
+from beadsight.live.outputs.viewer.events import (
     KEEPALIVE_S,
     MAX_EVENT_CLIENTS,
     EventBroadcaster,
     Snapshot,
 )
-from beadsight.live.viewer.http import LOCAL_HOSTS, REQUEST_TIMEOUT_S, ViewerHTTPServer
+from beadsight.live.outputs.viewer.http import LOCAL_HOSTS, REQUEST_TIMEOUT_S, ViewerHTTPServer
+from beadsight.live.recording.recorder import unique_recording_path
+from beadsight.live.ros.messages import health_report
 
 logger = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
 DEFAULT_HISTORY_S = 10.0  # length of the force trace
-COLORMAP = cv2.COLORMAP_INFERNO
 JPEG_QUALITY = 85
 PNG_COMPRESSION = 1  # fast; maps compress well anyway
 MAX_CONTOURS = 8  # largest contact outlines sent to the page
 CONTOUR_EPSILON_PX = 0.75  # polygon simplification tolerance
-
-
-def colormap_bgr(levels: int = 256) -> np.ndarray:
-    """(levels, 3) uint8 BGR colours of the fixed pressure scale (0 kPa first)."""
-    ramp = np.arange(levels, dtype=np.uint8).reshape(-1, 1)
-    return cv2.applyColorMap(ramp, COLORMAP).reshape(levels, 3)
 
 
 def _data_url(kind: str, ok: bool, buf: np.ndarray) -> str | None:
@@ -96,11 +90,8 @@ def encode_frame(frame_rgb: np.ndarray) -> str | None:
 
 def encode_map(pressure_kpa: np.ndarray, max_kpa: float, lut_bgr: np.ndarray) -> str | None:
     """(H, W) kPa -> PNG data URL on the fixed scale 0..max_kpa (values above saturate)."""
-    levels = len(lut_bgr) - 1
-    index = np.clip(np.nan_to_num(pressure_kpa) * (levels / max_kpa), 0, levels)
-    ok, buf = cv2.imencode(
-        ".png", lut_bgr[index.astype(np.uint8)], [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]
-    )
+    index = colour_indices(pressure_kpa, max_kpa, len(lut_bgr))
+    ok, buf = cv2.imencode(".png", lut_bgr[index], [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
     return _data_url("png", ok, buf)
 
 

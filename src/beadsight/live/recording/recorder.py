@@ -247,11 +247,11 @@ def open_recording_writer(
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in (".h5", ".hdf5"):
-        from beadsight.live.readings import ReadingsWriter
+        from beadsight.live.recording.readings import ReadingsWriter
 
         return ReadingsWriter(path, geometry, provenance, overwrite=overwrite)
     if suffix == ".mcap":
-        from beadsight.live.mcap import McapReadingsWriter
+        from beadsight.live.recording.mcap import McapReadingsWriter
 
         return McapReadingsWriter(path, geometry, provenance, overwrite=overwrite)
     raise ConfigError(f"{path}: recording format unknown; use a .h5 or .mcap file name")

@@ -9,7 +9,7 @@
   ``request_timeout_s`` in all, however slowly it trickles in ("slowloris").
 * **Bounded threads.** At most :data:`MAX_REQUEST_THREADS` requests are read at once; more
   connections are answered 503 at once. ``/events`` connections leave their thread as
-  soon as their headers are sent (see :mod:`beadsight.live.viewer.events`).
+  soon as their headers are sent (see :mod:`beadsight.live.outputs.viewer.events`).
 * **Strict bodies.** A missing, malformed, conflicting or too large ``Content-Length``
   is answered 411/400/413; a body shorter than announced, 400.
 """
@@ -146,7 +146,7 @@ class ViewerHTTPServer(ThreadingHTTPServer):
 
 
 class ViewerHandler(BaseHTTPRequestHandler):
-    """The viewer's routes (see :mod:`beadsight.live.viewer.server`)."""
+    """The viewer's routes (see :mod:`beadsight.live.outputs.viewer.server`)."""
 
     server: ViewerHTTPServer
     protocol_version = "HTTP/1.0"  # one request per connection: no idle keep-alive threads

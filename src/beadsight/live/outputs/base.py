@@ -1,9 +1,14 @@
-"""A live listener that publishes from its own thread, so that sensing never waits for it.
+"""The base of the network outputs: a live listener that publishes from its own thread, so
+that sensing never waits for it, with one rule for slow consumers.
 
-The sensing thread calls :meth:`BackgroundPublisher.push` for every reading; it only
-stores the update (keeping the newest :attr:`queue_size`, counting the ones it drops)
-and returns. A worker thread hands updates to :meth:`publish`, which subclasses
-implement (ROS 2 over DDS, the Foxglove WebSocket server, ...), and the sensor's state
+**The slow-client rule.** No reading older than ``max_age_s`` (0.5 s) is handed on, and
+every reading that is not handed on is counted in ``skipped``. The sensing thread calls
+:meth:`OutputListener.push` for every reading; it only stores the update with the time it
+arrived (keeping the newest :attr:`queue_size`; an older one is skipped) and returns. A
+worker thread hands updates to :meth:`publish`, which subclasses implement (ROS 2 over
+DDS, the Foxglove WebSocket server), skipping any that waited longer than ``max_age_s``;
+what a subclass does after ``publish`` (its own per-client queue) is bounded by the
+subclass (see ``docs/live.md``, *Slow clients*). The worker also hands the sensor's state
 and health to :meth:`publish_health`: at once when the sensor's state or the health
 state changes, else every :data:`HEALTH_PERIOD_S` while readings flow. A state change
 is published in order with the readings around it (state changes are never dropped), so
@@ -19,7 +24,8 @@ import time
 from collections import deque
 from typing import Any
 
-from beadsight.live.ros_messages import health_report
+from beadsight.live.config import MAX_AGE_S, check_positive
+from beadsight.live.ros.messages import health_report
 
 logger = logging.getLogger(__name__)
 
@@ -29,24 +35,28 @@ HEALTH_PERIOD_S = 1.0  # the health topic repeats this often while readings flow
 UPDATE, STATUS = "update", "status"
 
 
-class BackgroundPublisher:
-    """Base for listeners (see ``beadsight.live.listeners.LiveListener``) that publish slowly.
+class OutputListener:
+    """Base of every network output (a ``beadsight.live.listeners.LiveListener``).
 
     Subclasses implement :meth:`publish` (one ``LiveUpdate``), optionally
-    :meth:`publish_health` (a :func:`~beadsight.live.ros_messages.health_report`) and
+    :meth:`publish_health` (a :func:`~beadsight.live.ros.messages.health_report`) and
     :meth:`close` (release resources, called on the worker thread after the last
-    publish). ``published`` and ``dropped`` count updates; ``errors`` counts publish
-    calls that raised (each is logged); ``busy_s`` is the time spent in them. An update's health is its ``health`` attribute
-    (``.state``, ``.figures``), where the sensor tracks it.
+    publish). ``published`` and ``skipped`` count updates (skipped: the queue was full,
+    or the update waited longer than ``max_age_s``); ``errors`` counts publish calls
+    that raised (each is logged); ``busy_s`` is the time spent in them. An update's
+    health is its ``health`` attribute (``.state``, ``.figures``), where the sensor
+    tracks it.
     """
 
-    name = "publisher"
+    name = "output"
 
-    def __init__(self, queue_size: int = DEFAULT_QUEUE_SIZE):
-        if queue_size < 1:
-            raise ValueError(f"queue_size must be >= 1, got {queue_size}")
+    def __init__(self, *, max_age_s: float = MAX_AGE_S, queue_size: int = DEFAULT_QUEUE_SIZE):
+        if isinstance(queue_size, bool) or not isinstance(queue_size, int) or queue_size < 1:
+            raise ValueError(f"{self.name}: queue_size must be an integer >= 1, got {queue_size}")
+        self.max_age_s = check_positive(max_age_s, f"{self.name}: max_age_s", "s")
         self.queue_size = queue_size
-        self._events: deque[tuple[str, Any]] = deque()  # ("update" | "status", item), in order
+        # ("update", (monotonic arrival s, update)) | ("status", status), in order
+        self._events: deque[tuple[str, Any]] = deque()
         self._queued = 0  # updates in _events
         self._cond = threading.Condition()
         self._finished = False
@@ -55,7 +65,7 @@ class BackgroundPublisher:
         self._health_state: Any = None  # health state last published
         self._health_due = -math.inf  # time.monotonic() of the next periodic health
         self.published = 0
-        self.dropped = 0
+        self.skipped = 0
         self.errors = 0
         self.busy_s = 0.0  # time spent in publish(), s
         self._thread = threading.Thread(
@@ -66,12 +76,12 @@ class BackgroundPublisher:
     # --- called on the sensing thread: store and return ---------------------------------
     def push(self, update: Any) -> None:
         with self._cond:
-            if self._queued == self.queue_size:  # drop the oldest update (never a status)
+            if self._queued == self.queue_size:  # skip the oldest update (never a status)
                 oldest = next(i for i, (kind, _) in enumerate(self._events) if kind == UPDATE)
                 del self._events[oldest]
                 self._queued -= 1
-                self.dropped += 1
-            self._events.append((UPDATE, update))
+                self.skipped += 1
+            self._events.append((UPDATE, (time.monotonic(), update)))
             self._queued += 1
             self._cond.notify()
 
@@ -101,15 +111,22 @@ class BackgroundPublisher:
 
     # --- the worker ---------------------------------------------------------------------
     def _next(self) -> tuple[str | None, Any]:
-        """The next event; (None, None) once finished and all is published."""
+        """The next event; (None, None) once finished and all is published. Updates that
+        waited longer than ``max_age_s`` are skipped here."""
         with self._cond:
-            while not (self._events or self._finished):
-                self._cond.wait()
-            if not self._events:
-                return None, None
-            kind, item = self._events.popleft()
-            self._queued -= kind == UPDATE
-            return kind, item
+            while True:
+                while not (self._events or self._finished):
+                    self._cond.wait()
+                if not self._events:
+                    return None, None
+                kind, item = self._events.popleft()
+                if kind != UPDATE:
+                    return kind, item
+                self._queued -= 1
+                arrived_s, update = item
+                if time.monotonic() - arrived_s <= self.max_age_s:
+                    return kind, update
+                self.skipped += 1
 
     def _guarded(self, method: Any, arg: Any) -> bool:
         try:

@@ -36,15 +36,16 @@ from tqdm import tqdm
 
 from beadsight import __version__
 from beadsight.errors import BeadSightError, ConfigError
-from beadsight.live import ros_messages as msg
-from beadsight.live.readings import open_readings
-from beadsight.live.recorder import PartialWriter, ReadingLike
-from beadsight.live.ros_messages import (
+from beadsight.live.recording.readings import open_readings
+from beadsight.live.recording.recorder import PartialWriter, ReadingLike
+from beadsight.live.ros import messages as msg
+from beadsight.live.ros.messages import (
     image_message,
     point_message,
     unix_ns,
     wrench_message,
 )
+from beadsight.live.ros.types import TOPIC_TYPES, message_definition
 
 logger = logging.getLogger(__name__)
 
@@ -58,47 +59,16 @@ SUMMARY_BYTES = 16 * 1024  # MCAP summary without chunk indexes (schemas, channe
 SUMMARY_BYTES_PER_CHUNK = 512  # its chunk index entry per chunk
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
-_SEP = "\n" + "=" * 80 + "\n"
-_HEADER = (
-    "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id"
-    + _SEP
-    + "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec"
-)
-_VECTOR3 = "MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z"
-
-# ROS 2 message definitions as ros2 bag stores them: the type's text, then each dependency.
-MESSAGE_DEFINITIONS = {
-    "sensor_msgs/msg/Image": (
-        "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\n"
-        "uint8 is_bigendian\nuint32 step\nuint8[] data" + _SEP + _HEADER
-    ),
-    "geometry_msgs/msg/WrenchStamped": (
-        "std_msgs/Header header\ngeometry_msgs/Wrench wrench"
-        + _SEP
-        + "MSG: geometry_msgs/Wrench\ngeometry_msgs/Vector3 force\ngeometry_msgs/Vector3 torque"
-        + _SEP
-        + _VECTOR3
-        + _SEP
-        + _HEADER
-    ),
-    "geometry_msgs/msg/PointStamped": (
-        "std_msgs/Header header\ngeometry_msgs/Point point"
-        + _SEP
-        + "MSG: geometry_msgs/Point\nfloat64 x\nfloat64 y\nfloat64 z"
-        + _SEP
-        + _HEADER
-    ),
-}
-
 
 def _require_mcap() -> tuple[Any, Any]:
     try:
+        import rosbags.typesys  # noqa: F401 - the message definitions (live.ros.types)
         from mcap.writer import CompressionType
         from mcap_ros2.writer import Writer
     except ImportError as e:
         raise BeadSightError(
-            f"MCAP export needs the 'mcap' and 'mcap-ros2-support' packages ({e.name} is "
-            "missing): pip install 'beadsight[ros]'"
+            f"MCAP export needs the 'mcap', 'mcap-ros2-support' and 'rosbags' packages "
+            f"({e.name} is missing): pip install 'beadsight[ros]'"
         ) from None
     return Writer, CompressionType
 
@@ -156,7 +126,7 @@ class McapReadingsWriter(PartialWriter):
 
     Writes ``<path>.partial`` and renames it on :meth:`close`; an existing ``path`` is
     refused unless ``overwrite``. A full disk stops the recording with a
-    :class:`~beadsight.files.WriteError` (see :mod:`beadsight.live.recorder`); the file
+    :class:`~beadsight.files.WriteError` (see :mod:`beadsight.live.recording.recorder`); the file
     then ends properly after the last reading. Not thread-safe.
     """
 
@@ -173,8 +143,8 @@ class McapReadingsWriter(PartialWriter):
             self._stream, chunk_size=CHUNK_BYTES, compression=self._compression.ZSTD
         )
         self._schemas = {
-            name: self._writer.register_msgdef(name, text)
-            for name, text in MESSAGE_DEFINITIONS.items()
+            name: self._writer.register_msgdef(name, message_definition(name))
+            for name in sorted(set(TOPIC_TYPES.values()))
         }
         self._writer.add_metadata(
             "beadsight",

@@ -11,48 +11,36 @@ receives it:
   ``SensorDataQoS`` (best effort, keep last 5) and the default (reliable, keep last 10).
   A subscriber asking for transient-local durability does not match (nothing is latched).
 
-Topics, message contents and units are those of :mod:`beadsight.live.ros_messages`
+Topics, message contents and units are those of :mod:`beadsight.live.ros.messages`
 (the same as the MCAP export). Publishing runs on its own thread
-(:class:`~beadsight.live.publisher.BackgroundPublisher`): a slow network drops old
-readings (counted in ``dropped``) instead of slowing sensing.
+(:class:`~beadsight.live.outputs.base.OutputListener`): a slow network skips readings
+(counted in ``skipped``) instead of slowing sensing, and none older than ``max_age_s`` goes out.
 """
 
 from __future__ import annotations
 
 import functools
-import inspect
 import logging
 import os
-import types
 import typing
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from beadsight.errors import BeadSightError
-from beadsight.live import ros_messages as msg
-from beadsight.live.publisher import DEFAULT_QUEUE_SIZE, BackgroundPublisher
+from beadsight.live.config import MAX_AGE_S, MAX_DOMAIN_ID, check_domain, check_namespace
+from beadsight.live.outputs.base import DEFAULT_QUEUE_SIZE, OutputListener
+from beadsight.live.ros import messages as msg
+from beadsight.live.ros.types import TOPIC_TYPES, idl_structs
 
 logger = logging.getLogger(__name__)
 
 HISTORY_DEPTH = 5  # samples the writer keeps for late acknowledgements
 MAX_BLOCKING_S = 0.05  # a reliable write waits at most this long for a slow reader
 DDS_TOPIC_PREFIX = "rt"  # ROS 2 maps topic /a/b to DDS topic rt/a/b
-MAX_DOMAIN_ID = 232  # the highest ROS_DOMAIN_ID whose DDS ports fit (ROS 2 docs: Linux)
 DOMAIN_ENV = "ROS_DOMAIN_ID"
 MISSING = "--ros2 needs Cyclone DDS (the 'cyclonedds' package): pip install 'beadsight[ros]'"
-
-TOPIC_TYPES = {  # topic name (under the namespace) -> ROS 2 type, as in ros_messages
-    msg.PRESSURE: "sensor_msgs/msg/Image",
-    msg.FORCE: "geometry_msgs/msg/WrenchStamped",
-    msg.COP: "geometry_msgs/msg/PointStamped",
-    msg.CONTACT_AREA: "std_msgs/msg/Float32",
-    msg.HEALTH: "diagnostic_msgs/msg/DiagnosticArray",
-    msg.REFERENCE_FORCE: "geometry_msgs/msg/WrenchStamped",
-    msg.CAMERA: "sensor_msgs/msg/Image",
-}
 
 
 def require_cyclonedds() -> None:
@@ -61,12 +49,6 @@ def require_cyclonedds() -> None:
         import cyclonedds.domain  # noqa: F401
     except ImportError:
         raise BeadSightError(MISSING) from None
-
-
-def check_domain(domain_id: int, where: str = "ROS domain id") -> int:
-    if not 0 <= domain_id <= MAX_DOMAIN_ID:
-        raise BeadSightError(f"{where} {domain_id}: expected 0..{MAX_DOMAIN_ID}")
-    return domain_id
 
 
 def domain_from_environment(environ: Mapping[str, str] = os.environ) -> int:
@@ -81,103 +63,6 @@ def domain_from_environment(environ: Mapping[str, str] = os.environ) -> int:
             f"{DOMAIN_ENV}={text!r}: expected an integer 0..{MAX_DOMAIN_ID}"
         ) from None
     return check_domain(value, DOMAIN_ENV)
-
-
-def check_options(**options: Any) -> dict[str, Any]:
-    """Refuse now what ``Ros2Publisher(**options)`` would refuse later (Cyclone DDS not
-    installed, a bad namespace or domain, an unknown option); returns ``options``."""
-    try:
-        bound = inspect.signature(Ros2Publisher).bind(**options)
-    except TypeError as e:
-        raise BeadSightError(f"ROS 2 options {sorted(options)}: {e}") from None
-    bound.apply_defaults()
-    msg.check_namespace(bound.arguments["namespace"])
-    check_domain(bound.arguments["domain_id"])
-    require_cyclonedds()
-    return options
-
-
-@functools.cache
-def _types() -> dict[str, Any]:
-    """The ROS 2 message types as Cyclone DDS IDL structs (imported on first use)."""
-    try:
-        from cyclonedds.idl import IdlStruct
-        from cyclonedds.idl.types import byte, float32, float64, int32, sequence, uint8, uint32
-    except ImportError:
-        raise BeadSightError(MISSING) from None
-
-    def struct(typename: str, **fields: Any) -> type:
-        name = typename.rsplit("::", 1)[1]
-        cls = types.new_class(
-            name,
-            (IdlStruct,),
-            {"typename": typename},
-            lambda ns: ns.update(__annotations__=fields, __module__=__name__),
-        )
-        return dataclass(cls)
-
-    time_ = struct("builtin_interfaces::msg::dds_::Time_", sec=int32, nanosec=uint32)
-    header = struct("std_msgs::msg::dds_::Header_", stamp=time_, frame_id=str)
-    image = struct(
-        "sensor_msgs::msg::dds_::Image_",
-        header=header,
-        height=uint32,
-        width=uint32,
-        encoding=str,
-        is_bigendian=uint8,
-        step=uint32,
-        data=sequence[uint8],
-    )
-    vector3 = struct("geometry_msgs::msg::dds_::Vector3_", x=float64, y=float64, z=float64)
-    wrench = struct("geometry_msgs::msg::dds_::Wrench_", force=vector3, torque=vector3)
-    point = struct("geometry_msgs::msg::dds_::Point_", x=float64, y=float64, z=float64)
-    key_value = struct("diagnostic_msgs::msg::dds_::KeyValue_", key=str, value=str)
-    status = struct(
-        "diagnostic_msgs::msg::dds_::DiagnosticStatus_",
-        level=byte,
-        name=str,
-        message=str,
-        hardware_id=str,
-        values=sequence[key_value],
-    )
-    by_ros_type = {
-        "sensor_msgs/msg/Image": image,
-        "geometry_msgs/msg/WrenchStamped": struct(
-            "geometry_msgs::msg::dds_::WrenchStamped_", header=header, wrench=wrench
-        ),
-        "geometry_msgs/msg/PointStamped": struct(
-            "geometry_msgs::msg::dds_::PointStamped_", header=header, point=point
-        ),
-        "std_msgs/msg/Float32": struct("std_msgs::msg::dds_::Float32_", data=float32),
-        "diagnostic_msgs/msg/DiagnosticArray": struct(
-            "diagnostic_msgs::msg::dds_::DiagnosticArray_", header=header, status=sequence[status]
-        ),
-    }
-    _fast_byte_sequences(image)
-    return by_ros_type
-
-
-def _fast_byte_sequences(image_type: type) -> None:
-    """Serialise ``Image.data`` from ``bytes`` in one copy.
-
-    Cyclone's generic ``sequence<uint8>`` path packs the 262,144 bytes of a 256x256 map
-    one argument each (~9 ms, holding the GIL); its ``bytes`` machine writes the same
-    wire format (uint32 length, then the bytes) in ~0.3 ms. The declared type (and so
-    the XTypes type information other participants see) stays ``sequence<uint8>``.
-    If this Cyclone version is laid out differently, the slow path stays.
-    """
-    try:
-        from cyclonedds.idl._machinery import BytesMachine, PlainCdrV2SequenceOfPrimitiveMachine
-
-        idl = image_type.__idl__
-        idl.populate()
-        for machine in (idl.v1_machine, idl.v2_machine):
-            members = machine.members_machines
-            if not isinstance(members.get("data"), PlainCdrV2SequenceOfPrimitiveMachine):
-                raise TypeError(type(members.get("data")).__name__)
-            members["data"] = BytesMachine()
-    except Exception as e:  # pragma: no cover - other Cyclone versions
-        logger.warning("ros2: fast image serialisation unavailable (%s); publishing is slower", e)
 
 
 @functools.cache
@@ -212,12 +97,13 @@ def default_qos() -> Any:
     )
 
 
-class Ros2Publisher(BackgroundPublisher):
+class Ros2Publisher(OutputListener):
     """Publishes each live update as ROS 2 messages (a ``LiveListener``).
 
     namespace: ROS 2 namespace of the topics (``/beadsight``).
     domain_id: the ROS_DOMAIN_ID to publish in (0..232; see :func:`domain_from_environment`).
     camera: also publish the model-input frame (``<namespace>/camera``, rgb8).
+    max_age_s, queue_size: the slow-client rule (:class:`~beadsight.live.outputs.base.OutputListener`).
     Cyclone DDS reads its network settings from ``$CYCLONEDDS_URI`` as usual.
     """
 
@@ -228,12 +114,13 @@ class Ros2Publisher(BackgroundPublisher):
         namespace: str = msg.DEFAULT_NAMESPACE,
         domain_id: int = 0,
         camera: bool = False,
+        max_age_s: float = MAX_AGE_S,
         queue_size: int = DEFAULT_QUEUE_SIZE,
     ):
-        self.namespace = msg.check_namespace(namespace)
+        self.namespace = check_namespace(namespace)
         self.domain_id = check_domain(domain_id)
         self.camera = camera
-        types_ = _types()
+        types_ = idl_structs()
         from cyclonedds.domain import DomainParticipant
         from cyclonedds.pub import DataWriter
         from cyclonedds.topic import Topic
@@ -250,7 +137,7 @@ class Ros2Publisher(BackgroundPublisher):
             writer = DataWriter(self._participant, topic, qos=qos)
             self._entities += [writer, topic]
             self._writers[name] = (writer, cls)
-        super().__init__(queue_size)
+        super().__init__(max_age_s=max_age_s, queue_size=queue_size)
 
     def _topic(self, name: str) -> str:
         return msg.topic(self.namespace, name)

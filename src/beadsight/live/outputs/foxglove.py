@@ -1,7 +1,7 @@
 """Live readings in Foxglove (app or web): ``beadsight live --foxglove``.
 
 Runs the Foxglove WebSocket server of ``foxglove-sdk`` (``pip install 'beadsight[ros]'``)
-and logs, per reading (channel names follow :mod:`beadsight.live.ros_messages`):
+and logs, per reading (channel names follow :mod:`beadsight.live.ros.messages`):
 
 =================================  ====================  ===========================================
 channel                            schema                content
@@ -23,7 +23,6 @@ Logging runs on its own thread (a slow client never slows sensing).
 
 from __future__ import annotations
 
-import inspect
 import json
 import threading
 from typing import Any
@@ -32,12 +31,23 @@ import numpy as np
 
 from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
-from beadsight.live import ros_messages as msg
+from beadsight.live.config import (
+    DEFAULT_HOST,
+    MAX_AGE_S,
+    check_namespace,
+    check_port,
+    check_positive,
+)
 from beadsight.live.config import FOXGLOVE_PORT as DEFAULT_PORT
-from beadsight.live.publisher import DEFAULT_QUEUE_SIZE, BackgroundPublisher
-from beadsight.live.viewer.server import DEFAULT_MAX_KPA, colormap_bgr
+from beadsight.live.config import VIEWER_MAX_KPA as DEFAULT_MAX_KPA
+from beadsight.live.outputs.base import DEFAULT_QUEUE_SIZE, OutputListener
+from beadsight.live.outputs.colormap import colormap_bgr, colour_indices
+from beadsight.live.ros import messages as msg
 
-MAX_PORT = 65535
+MESSAGES_PER_READING = 4  # camera, pressure, pressure_image, reading (health: about 1 a second)
+CLIENT_BACKLOG_READINGS = (
+    2  # readings' messages the SDK queues per client before dropping the oldest
+)
 PRESSURE_IMAGE = "pressure_image"
 READING = "reading"
 
@@ -81,7 +91,7 @@ HEALTH_STATUS_ID = "beadsight-health"  # the Foxglove app's problem entry for po
 READING_SCHEMA_NAME, HEALTH_SCHEMA_NAME = "beadsight.Reading", "beadsight.Health"
 
 
-def _require_foxglove() -> Any:
+def require_foxglove() -> Any:
     try:
         import foxglove
     except ImportError:
@@ -92,26 +102,10 @@ def _require_foxglove() -> Any:
     return foxglove
 
 
-def check_options(**options: Any) -> dict[str, Any]:
-    """Refuse now what ``FoxgloveServer(geometry, **options)`` would refuse later (the SDK
-    not installed, a bad port, colour scale or namespace, an unknown option); returns
-    ``options``."""
-    try:
-        bound = inspect.signature(FoxgloveServer).bind(None, **options)
-    except TypeError as e:
-        raise BeadSightError(f"Foxglove options {sorted(options)}: {e}") from None
-    bound.apply_defaults()
-    _check(bound.arguments["port"], bound.arguments["max_kpa"], bound.arguments["namespace"])
-    _require_foxglove()
-    return options
-
-
 def _check(port: int, max_kpa: float, namespace: str) -> None:
-    if not 0 <= port <= MAX_PORT:
-        raise BeadSightError(f"Foxglove port {port}: expected 0..{MAX_PORT} (0: any free port)")
-    if not max_kpa > 0:
-        raise BeadSightError(f"Foxglove max_kpa {max_kpa}: expected > 0 kPa")
-    msg.check_namespace(namespace)
+    check_port(port, "Foxglove port")
+    check_positive(max_kpa, "Foxglove max_kpa", "kPa")
+    check_namespace(namespace)
 
 
 def _timestamp(t_s: float) -> Any:
@@ -140,12 +134,15 @@ class _Subscriptions:
             self.counts[channel.topic] = self.counts.get(channel.topic, 1) - 1
 
 
-class FoxgloveServer(BackgroundPublisher):
+class FoxgloveServer(OutputListener):
     """Serves live updates to Foxglove over WebSocket (a ``LiveListener``).
 
     geometry: the model's sensor geometry (map size and mm per pixel).
     host, port: where the server listens (port 0: any free port, see :attr:`port`).
     max_kpa: top of the colour scale of ``pressure_image``.
+    max_age_s, queue_size: the slow-client rule (:class:`~beadsight.live.outputs.base.OutputListener`);
+    beyond it, the SDK queues at most :data:`CLIENT_BACKLOG_READINGS` readings' messages
+    per client and drops the oldest.
     """
 
     name = "foxglove"
@@ -153,13 +150,15 @@ class FoxgloveServer(BackgroundPublisher):
     def __init__(
         self,
         geometry: SensorGeometry,
-        host: str = "127.0.0.1",
+        host: str = DEFAULT_HOST,
         port: int = DEFAULT_PORT,
         namespace: str = msg.DEFAULT_NAMESPACE,
         max_kpa: float = DEFAULT_MAX_KPA,
+        *,
+        max_age_s: float = MAX_AGE_S,
         queue_size: int = DEFAULT_QUEUE_SIZE,
     ):
-        fox = _require_foxglove()
+        fox = require_foxglove()
         from foxglove.channels import GridChannel, RawImageChannel
         from foxglove.messages import PackedElementField, PackedElementFieldNumericType
 
@@ -178,6 +177,7 @@ class FoxgloveServer(BackgroundPublisher):
                 port=port,
                 context=self._context,
                 server_listener=self._subscriptions,
+                message_backlog_size=MESSAGES_PER_READING * CLIENT_BACKLOG_READINGS,
             )
         except Exception as e:
             raise BeadSightError(f"Foxglove server on {host}:{port}: {e}") from e
@@ -199,7 +199,7 @@ class FoxgloveServer(BackgroundPublisher):
             message_encoding="json",
             context=ctx,
         )
-        super().__init__(queue_size)
+        super().__init__(max_age_s=max_age_s, queue_size=queue_size)
 
     @property
     def url(self) -> str:
@@ -265,11 +265,8 @@ class FoxgloveServer(BackgroundPublisher):
         t_ns = msg.unix_ns(t)
         self._camera.log(self._raw_image(update.frame_rgb, t), log_time=t_ns)
         self._pressure.log(self._grid(r.pressure_kpa, t), log_time=t_ns)
-        levels = len(self._lut_rgb) - 1
-        index = np.clip(np.nan_to_num(r.pressure_kpa) * (levels / self.max_kpa), 0, levels)
-        self._pressure_image.log(
-            self._raw_image(self._lut_rgb[index.astype(np.uint8)], t), log_time=t_ns
-        )
+        index = colour_indices(r.pressure_kpa, self.max_kpa, len(self._lut_rgb))
+        self._pressure_image.log(self._raw_image(self._lut_rgb[index], t), log_time=t_ns)
         cop = np.asarray(r.cop_mm, dtype=float).reshape(2)
         reading = {
             "timestamp_s": t,

@@ -23,7 +23,7 @@ File attributes: ``format``, ``format_version``, ``geometry`` (SensorGeometry JS
 ``provenance`` (JSON: checkpoint, source, backend, beadsight version, creation time).
 The writer fills ``<path>.partial`` and renames it on :meth:`ReadingsWriter.close`, so a
 file at ``path`` is always complete; after a crash or a full disk the ``.partial`` file
-holds what was flushed (see :mod:`beadsight.live.recorder`).
+holds what was flushed (see :mod:`beadsight.live.recording.recorder`).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.files import Closes
 from beadsight.h5safe import find_dataset, open_h5
-from beadsight.live.recorder import PartialWriter, ReadingLike
+from beadsight.live.recording.recorder import PartialWriter, ReadingLike
 
 logger = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ class ReadingsWriter(PartialWriter):
     so appending costs microseconds; :meth:`close` writes the rest and moves the file
     into place. An existing ``path`` is refused unless ``overwrite``. A full disk stops
     the recording with a :class:`~beadsight.files.WriteError` (see
-    :mod:`beadsight.live.recorder`). Not thread-safe: call it from one thread.
+    :mod:`beadsight.live.recording.recorder`). Not thread-safe: call it from one thread.
     """
 
     def _prepare(self) -> None:

@@ -1,6 +1,6 @@
 """ROS 2 message contents for readings: one place for topic names, frames, units and
-stamps, shared by the MCAP writer (``live/mcap.py``), the ROS 2 publisher
-(``live/ros2.py``) and the Foxglove server (``live/foxglove.py``).
+stamps, shared by the MCAP writer (``live/recording/mcap.py``), the ROS 2 publisher
+(``live/outputs/ros2.py``) and the Foxglove server (``live/outputs/foxglove.py``).
 
 Each function returns a plain dict laid out like the ROS 2 message (field names and
 nesting as in the ``.msg`` definitions). Units follow ROS (REP 103): metres, newtons,
@@ -30,16 +30,15 @@ is printer +Y, column 0 printer +X (see ``beadsight.geometry.mm_to_px``).
 from __future__ import annotations
 
 import math
-import re
 from fractions import Fraction
 from typing import Any
 
 import numpy as np
 
-from beadsight.errors import BeadSightError
-from beadsight.live.config import ROS_NAMESPACE
+from beadsight.live.config import ROS_NAMESPACE, check_namespace
 
 DEFAULT_NAMESPACE = ROS_NAMESPACE  # topics and channels live under it (live/config.py)
+__all__ = ["check_namespace"]  # re-exported: outputs check namespaces through msg
 
 FRAME_ID = "beadsight"
 PRESSURE, FORCE, COP, CONTACT_AREA, HEALTH, CAMERA, REFERENCE_FORCE = (
@@ -70,18 +69,6 @@ SENSOR_LEVELS = {  # LiveStatus.state -> level (others: WARN)
     "error": DIAGNOSTIC_ERROR,
 }
 HEALTH_LEVELS = {"ok": DIAGNOSTIC_OK, "drifting": DIAGNOSTIC_WARN, "recalibrate": DIAGNOSTIC_ERROR}
-
-_ROS_NAMESPACE = re.compile(r"^(/[A-Za-z][A-Za-z0-9_]*)+$")
-
-
-def check_namespace(namespace: str) -> str:
-    """A ROS 2 namespace as given (``/beadsight``, ``/robot/left_finger``); else an error."""
-    if not _ROS_NAMESPACE.match(namespace):
-        raise BeadSightError(
-            f"ROS namespace {namespace!r}: expected '/name' or '/a/b' with each part starting "
-            "with a letter, then letters, digits or '_' (e.g. /beadsight)"
-        )
-    return namespace
 
 
 def topic(namespace: str, name: str) -> str:

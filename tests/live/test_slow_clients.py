@@ -1,0 +1,137 @@
+"""The slow-client rule of the network outputs (issue 27, item 3): sensing never waits, no
+reading older than ``max_age_s`` is handed on, and every reading not handed on is counted.
+
+Measured against real slow consumers: a publisher whose every publish takes 0.3 s, and a
+WebSocket client (``websockets``, not our code) on the Foxglove server."""
+
+from __future__ import annotations
+
+import json
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+from helpers.live import BACKEND, wait_until
+
+from beadsight.errors import ConfigError
+from beadsight.live.config import MAX_AGE_S, LiveRunConfig
+from beadsight.live.outputs.base import OutputListener
+from beadsight.live.sensor import LiveSensor
+
+pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
+
+PUBLISH_S = 0.3  # each publish of the slow publisher takes this long
+PUSH_PERIOD_S = 1 / 30  # the sensing rate of the pushes
+
+
+class SlowPublisher(OutputListener):
+    """Publishes by sleeping PUBLISH_S; notes each reading's age when it is published."""
+
+    name = "slow"
+
+    def __init__(self, **options):
+        self.ages: list[float] = []
+        self.seen: list[int] = []
+        super().__init__(**options)
+
+    def publish(self, update) -> None:
+        produced_s, i = update
+        self.ages.append(time.monotonic() - produced_s)
+        self.seen.append(i)
+        time.sleep(PUBLISH_S)
+
+
+def test_a_slow_publisher_gets_no_reading_older_than_max_age_and_skips_are_counted():
+    pub = SlowPublisher(max_age_s=MAX_AGE_S, queue_size=4)
+    pushed, longest_push = 60, 0.0
+    for i in range(pushed):  # 2 s of readings at 30 Hz: the publisher takes about 7
+        start = time.monotonic()
+        pub.push((start, i))
+        longest_push = max(longest_push, time.monotonic() - start)
+        time.sleep(PUSH_PERIOD_S)
+    pub.finish()
+    assert longest_push < 0.05  # sensing never waits for the publisher
+    # the queue of 4 alone would hand on readings 4 x 0.3 s = 1.2 s old
+    assert max(pub.ages) <= MAX_AGE_S
+    assert pub.published == len(pub.seen) and pub.published + pub.skipped == pushed
+    assert pub.skipped >= pushed // 2
+    assert pub.seen == sorted(pub.seen)  # in order
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("max_age_s", 0, "max_age_s 0: expected a finite number > 0 s"),
+        ("max_age_s", float("nan"), "max_age_s nan: expected a finite number > 0 s"),
+        ("foxglove_port", 70000, "Foxglove port 70000: expected 0..65535 (0: any free port)"),
+        ("ros_domain", 233, "ROS domain id 233: expected 0..232"),
+        ("ros_namespace", "beadsight", "ROS namespace 'beadsight': expected '/name'"),
+        ("report_every_s", float("inf"), "report_every_s inf: expected a finite number > 0"),
+    ],
+)
+def test_live_run_config_refuses_bad_values_by_name(field, value, message):
+    with pytest.raises(ConfigError) as e:
+        LiveRunConfig(**{field: value})
+    assert str(e.value).startswith(message)
+
+
+def test_output_listener_refuses_a_bad_max_age():
+    with pytest.raises(ConfigError, match=r"slow: max_age_s -1: expected a finite number > 0"):
+        SlowPublisher(max_age_s=-1)
+
+
+# --- Foxglove, read by a real WebSocket client -----------------------------------------------
+def _foxglove_reader(url: str, stop: threading.Event, newest: list, errors: list) -> None:
+    """A client that reads every message on its own thread and keeps the newest log time."""
+    from websockets.sync.client import connect
+
+    try:
+        with connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=10) as ws:
+            json.loads(ws.recv(10))  # serverInfo
+            channels = json.loads(ws.recv(10))["channels"]
+            subs = [{"id": i, "channelId": c["id"]} for i, c in enumerate(channels)]
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+            while not stop.is_set():
+                try:
+                    frame = ws.recv(0.2)
+                except TimeoutError:
+                    continue
+                if isinstance(frame, bytes) and frame[0] == 0x01:  # message data
+                    newest[0] = struct.unpack_from("<IQ", frame, 1)[1]  # log time, ns
+    except Exception as e:  # reported by the test
+        errors.append(e)
+
+
+@pytest.mark.slow
+def test_foxglove_client_that_keeps_the_newest_message_reads_fresh_readings():
+    """The pattern docs/live.md gives a client slower than the readings (read on a thread,
+    keep the newest): sampled 10 times a second, what it holds is at most MAX_AGE_S old
+    (capture time -> the moment the client uses it)."""
+    pytest.importorskip("foxglove", reason="the 'ros' extra is not installed")
+    pytest.importorskip("websockets.sync.client")
+    from beadsight.live.outputs.foxglove import FoxgloveServer
+
+    sensor = LiveSensor(None, "sim", **BACKEND)
+    sensor.open()
+    server = FoxgloveServer(sensor.geometry, port=0)
+    sensor.add_listener(server)
+    stop, newest, errors = threading.Event(), [0], []
+    reader = threading.Thread(target=_foxglove_reader, args=(server.url, stop, newest, errors))
+    reader.start()
+    try:
+        wait_until(lambda: all(server.subscribers().values()), 20, "the client to subscribe")
+        sensor.start()
+        wait_until(lambda: sensor.stats().readings >= 30 or errors, 30, "30 readings")
+        ages = []
+        for _ in range(50):  # 5 s, sampled at 10 Hz
+            time.sleep(0.1)
+            ages.append(time.time() - newest[0] / 1e9)
+    finally:
+        stop.set()
+        reader.join(15)
+        sensor.stop()
+        server.finish()
+    assert not errors, errors
+    assert np.percentile(ages, 95) <= MAX_AGE_S, np.percentile(ages, [50, 95, 100])
