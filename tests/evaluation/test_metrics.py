@@ -17,11 +17,9 @@ from beadsight.evaluation.metrics import (
     compute_metrics,
     contact_iou,
     format_metrics_table,
-    otsu_masks,
-    otsu_thresholds,
     region_cells,
 )
-from beadsight.geometry import disk_maps
+from beadsight.geometry import disk_maps, otsu_masks, otsu_thresholds
 
 G = SensorGeometry(image_size_px=64)
 MM_PER_PX = 41 / 64  # 0.640625

@@ -35,7 +35,7 @@ from beadsight.checkpoint import (
     shipped_model_path,
 )
 from beadsight.config import ConfigError, ContactThresholds
-from beadsight.data.dataset import DatasetError, open_dataset
+from beadsight.data.dataset import DatasetError, dataset_fingerprint, open_dataset
 from beadsight.data.splits import dataset_window_ends
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.train.align import align_to_rest, fit_force_gain, with_meta
@@ -53,7 +53,6 @@ from beadsight.train.calibrate_config import (
 from beadsight.train.config import SIZE_MULTIPLE, TrainConfig
 from beadsight.train.prepare import split_used_presses
 from beadsight.train.run import BEST_CHECKPOINT
-from beadsight.train.windows import dataset_fingerprint
 
 logger = logging.getLogger(__name__)
 
