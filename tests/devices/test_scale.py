@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from beadsight.devices import DeviceNotConnectedError, DeviceTimeoutError, HX711Scale, ScaleError
-from beadsight.devices.scale_protocol import (
+from beadsight.data.recording.scale_protocol import (
     ProtocolDetector,
     ReferenceDecoder,
     encode_reference_value,

@@ -26,7 +26,7 @@ from collections.abc import Callable
 import numpy as np
 
 from beadsight.devices.clock import SimClock
-from beadsight.devices.scale_protocol import (
+from beadsight.data.recording.scale_protocol import (
     FIRMWARE_VERSION,
     REFERENCE_COUNTS_PER_GRAM,
     SUPPORTED_RATES_HZ,
