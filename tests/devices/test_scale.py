@@ -8,7 +8,6 @@ import time
 import numpy as np
 import pytest
 
-from beadsight.devices import DeviceNotConnectedError, DeviceTimeoutError, HX711Scale, ScaleError
 from beadsight.data.recording.scale_protocol import (
     ProtocolDetector,
     ReferenceDecoder,
@@ -17,6 +16,7 @@ from beadsight.data.recording.scale_protocol import (
     parse_reading,
     parse_reference_value,
 )
+from beadsight.devices import DeviceNotConnectedError, DeviceTimeoutError, HX711Scale, ScaleError
 from beadsight.devices.virtual import VirtualScale
 from beadsight.geometry import grams_to_newtons
 

@@ -42,6 +42,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from beadsight.data.recording.scale_protocol import (
+    SUPPORTED_RATES_HZ,
+    DeviceInfo,
+    ProtocolDetector,
+    ReferenceDecoder,
+    parse_info,
+    parse_reading,
+    parse_reference_value,
+)
 from beadsight.devices.base import (
     DeviceContext,
     DeviceError,
@@ -51,15 +60,6 @@ from beadsight.devices.base import (
     ScaleReading,
     host_now,
     wait_or_time_out,
-)
-from beadsight.data.recording.scale_protocol import (
-    SUPPORTED_RATES_HZ,
-    DeviceInfo,
-    ProtocolDetector,
-    ReferenceDecoder,
-    parse_info,
-    parse_reading,
-    parse_reference_value,
 )
 from beadsight.devices.serial_port import SerialLines, open_serial
 from beadsight.geometry import grams_to_newtons

@@ -25,7 +25,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-from beadsight.devices.clock import SimClock
 from beadsight.data.recording.scale_protocol import (
     FIRMWARE_VERSION,
     REFERENCE_COUNTS_PER_GRAM,
@@ -34,6 +33,7 @@ from beadsight.data.recording.scale_protocol import (
     format_info,
     format_reading,
 )
+from beadsight.devices.clock import SimClock
 from beadsight.devices.virtual.pty_device import PtyDevice
 from beadsight.geometry import newtons_to_grams
 
