@@ -58,8 +58,7 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
         p,
         "--preprocess",
         config.PREDICT_PREPROCESS,
-        "auto, none, reference, reference-linear, or a fisheye calibration .json "
-        "(video input only)",
+        "auto, none, reference, reference-linear, or a fisheye lens .json (video input only)",
     )
     p.add_argument(
         "--rest",

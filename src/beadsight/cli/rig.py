@@ -44,7 +44,7 @@ VIRTUAL_FLAGS = (
 PROCESS_FLAGS = (
     (
         "preprocess",
-        "'reference' (fisheye unwarp as published), 'none', or a fisheye calibration .json",
+        "'reference' (fisheye unwarp as published), 'none', or a fisheye lens .json",
     ),
     ("image_size", "output image side, px"),
     (

@@ -20,7 +20,7 @@ class ProcessConfig(_Serializable):
     """How a raw recording becomes a dataset."""
 
     image_size: int = 256  # side of the dataset's square images, px
-    preprocess: str = "reference"  # "reference", "none", or a fisheye calibration .json path
+    preprocess: str = "reference"  # "reference", "none", or a fisheye lens .json path
     interpolation: str = "linear"  # reference unwarp sampling: "linear" or "reference" (bit-exact)
     resize: str = "supersample"  # "supersample" (fast, antialiased), "area", "linear"
     force_interpolation: str = "pchip"  # "pchip", "cubic" (reference) or "linear"
