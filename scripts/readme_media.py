@@ -51,7 +51,7 @@ def run_demo(out: Path) -> dict:
 
 def metrics_markdown(summary: dict) -> str:
     """The demo's metrics as a Markdown table, this run marked against the paper."""
-    from beadsight.evaluation.metrics import PAPER_METRICS, TABLE_ROWS, compare_with_paper
+    from beadsight.report.paper import PAPER_METRICS, TABLE_ROWS, compare_with_paper
 
     metrics, baselines = summary["metrics"], summary.get("baselines") or {}
     metrics = {**metrics, "frames": summary["frames_evaluated"]}

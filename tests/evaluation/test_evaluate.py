@@ -20,9 +20,9 @@ from beadsight.data.rest import REST_FRAMES, average_rest, rest_ends, with_rest
 from beadsight.data.splits import dataset_window_ends, split_presses, window_ends
 from beadsight.data.windows import resize_frames
 from beadsight.data.writer import DatasetWriter
-from beadsight.evaluation.animation import animation_frames, strongest_press
 from beadsight.evaluation.evaluate import EvaluationError, evaluate, select_split
 from beadsight.geometry import total_force_n
+from beadsight.report.animation import animation_frames, strongest_press
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # a shared 2-core machine
 REQUIRED_KEYS = {

@@ -87,7 +87,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     plots to --out and print the metrics beside the paper's.
     """
     from beadsight.evaluation.evaluate import evaluate
-    from beadsight.evaluation.metrics import format_metrics_table
+    from beadsight.report.paper import format_metrics_table
 
     metrics = evaluate(
         args.checkpoint,

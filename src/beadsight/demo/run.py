@@ -31,14 +31,14 @@ from beadsight.demo.config import (
     DemoError,
 )
 from beadsight.demo.report import demo_report, demo_summary, prepare_out_dir
-from beadsight.evaluation.animation import (
+from beadsight.files import atomic_write_json
+from beadsight.report.animation import (
     animation_colour_max,
     animation_frames,
     strongest_press,
     write_animation,
 )
-from beadsight.evaluation.report import write_report
-from beadsight.files import atomic_write_json
+from beadsight.report.page import write_report
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
 
 logger = logging.getLogger(__name__)

@@ -1,7 +1,7 @@
 """The files a calibration leaves besides ``model.pt``: ``metrics.json`` (the calibrated
 model's metrics on the test presses, the base model's zero-shot and aligned ones, and the
 calibration record), ``learning_curve.png`` and ``report.html``, a page built by the one
-report builder (:mod:`beadsight.evaluation.report`)."""
+report builder (:mod:`beadsight.report.page`)."""
 
 from __future__ import annotations
 
@@ -11,19 +11,19 @@ from pathlib import Path
 import numpy as np
 
 from beadsight.evaluation.evaluate import write_metrics_json
-from beadsight.evaluation.metrics import PAPER_METRICS
-from beadsight.evaluation.plots import (
-    CurvePoint,
-    learning_curve_caption,
-    plot_learning_curve,
-)
-from beadsight.evaluation.report import (
+from beadsight.report.page import (
     Figure,
     Report,
     evaluation_figures,
     evaluation_links,
     evaluation_summary,
     write_report,
+)
+from beadsight.report.paper import PAPER_METRICS
+from beadsight.report.plots import (
+    CurvePoint,
+    learning_curve_caption,
+    plot_learning_curve,
 )
 from beadsight.train.calibrate_config import (
     ALIGNED_FILE,
