@@ -10,6 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
+from beadsight.calibrate.config import (
+    ALIGNED_FILE,
+    CURVE_PLOT,
+    METRICS_FILE,
+    MODEL_FILE,
+    REPORT_FILE,
+    TRAIN_FOLDER,
+)
 from beadsight.evaluation.evaluate import write_metrics_json
 from beadsight.report.page import (
     Figure,
@@ -24,14 +32,6 @@ from beadsight.report.plots import (
     CurvePoint,
     learning_curve_caption,
     plot_learning_curve,
-)
-from beadsight.train.calibrate_config import (
-    ALIGNED_FILE,
-    CURVE_PLOT,
-    METRICS_FILE,
-    MODEL_FILE,
-    REPORT_FILE,
-    TRAIN_FOLDER,
 )
 from beadsight.train.run import METRICS_FILE as TRAIN_METRICS
 
