@@ -121,7 +121,7 @@ def viewer_screenshot(path: Path) -> int:
     from PIL import Image
     from playwright.sync_api import sync_playwright
 
-    from beadsight.checkpoint import shipped_model_path
+    from beadsight.assets import shipped_model_path
 
     model = shipped_model_path()  # named relative to the repository: the page shows it
     if model.is_relative_to(ROOT):

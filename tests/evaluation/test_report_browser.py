@@ -9,7 +9,8 @@ import shutil
 import pytest
 from helpers.browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
 
-from beadsight.checkpoint import CheckpointError, shipped_model_path
+from beadsight.assets import shipped_model_path
+from beadsight.checkpoint import CheckpointError
 from beadsight.cli import main
 
 pytestmark = [

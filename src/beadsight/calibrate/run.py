@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from beadsight.assets import BASE_MODEL, shipped_model_path
 from beadsight.calibrate.align import align_to_rest, fit_force_gain, with_meta
 from beadsight.calibrate.config import (
     ALIGNED_FILE,
@@ -40,12 +41,7 @@ from beadsight.calibrate.config import (
     TRAIN_FOLDER,
     CalibrateConfig,
 )
-from beadsight.checkpoint import (
-    BASE_MODEL,
-    PressureModel,
-    load_checkpoint,
-    shipped_model_path,
-)
+from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.config import ConfigError, ContactThresholds
 from beadsight.data.dataset import DatasetError, dataset_fingerprint, open_dataset
 from beadsight.data.splits import dataset_window_ends

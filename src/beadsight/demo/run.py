@@ -13,7 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from beadsight.checkpoint import PressureModel, shipped_model_path
+from beadsight.assets import shipped_model_path
+from beadsight.checkpoint import PressureModel
 from beadsight.demo.config import (
     ANIMATION_FILE,
     DEFAULT_TRAIN_FRACTION,
