@@ -151,10 +151,10 @@ def stage_costs(raw: Path, config: dict, repeats: int = 3) -> dict[str, float]:
     import cv2
 
     from beadsight.config import SensorGeometry
+    from beadsight.data.dataset_writer import DatasetWriter
     from beadsight.data.images import DECODE_FLAGS
     from beadsight.data.process_config import ProcessConfig
     from beadsight.data.recording import VIDEO_NAME, iter_video
-    from beadsight.data.writer import DatasetWriter
     from beadsight.preprocess import Preprocessor
 
     cfg = ProcessConfig(**config)

@@ -17,10 +17,10 @@ from beadsight.calibrate.run import calibrate
 from beadsight.cli import main
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import DatasetError, open_dataset
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.data.reference_file import export_reference
 from beadsight.data.rest import average_rest, rest_ends, with_rest
 from beadsight.data.splits import dataset_window_ends
-from beadsight.data.writer import DatasetWriter
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.geometry import total_force_n
 

@@ -21,7 +21,7 @@ from beadsight.checkpoint import CheckpointError, read_checkpoint_file
 from beadsight.cli import main
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import DatasetError, dataset_fingerprint, open_dataset
-from beadsight.data.writer import DatasetWriter
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.geometry import disk_pressure_kpa
 from beadsight.train.config import TrainConfig, resolve_train_config
 from beadsight.train.distributed import Distributed

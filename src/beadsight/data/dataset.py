@@ -3,7 +3,7 @@
 See docs/data-format.md for the layout. :func:`open_dataset` reads this project's
 files and the reference processed files alike and presents them through one
 :class:`Dataset` object (forces in newtons, positions in mm, float64 timestamps,
-press segmentation). Writing: :class:`beadsight.data.writer.DatasetWriter`; the
+press segmentation). Writing: :class:`beadsight.data.dataset_writer.DatasetWriter`; the
 reference layout: :mod:`beadsight.data.reference_file`.
 """
 

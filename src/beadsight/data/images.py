@@ -4,7 +4,7 @@ Frames are read chunk by chunk in dataset order by one reader thread and pushed
 through a :class:`~beadsight.preprocess.Preprocessor` on a thread pool (OpenCV
 releases the GIL); for MJPG video the JPEGs are decoded by the workers, at reduced
 size when the output does not need full resolution. The finished frames go to a
-:class:`~beadsight.data.writer.DatasetWriter` in batches, with their labels.
+:class:`~beadsight.data.dataset_writer.DatasetWriter` in batches, with their labels.
 """
 
 from __future__ import annotations
@@ -20,10 +20,10 @@ import numpy as np
 from tqdm import tqdm
 
 from beadsight.config import ConfigError
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.data.frame_labels import FrameLabels
 from beadsight.data.process_config import DECODE_SCALES, ProcessConfig
 from beadsight.data.recording import Recording, RecordingError, iter_video
-from beadsight.data.writer import DatasetWriter
 from beadsight.preprocess import Preprocessor
 
 DECODE_FLAGS = dict(

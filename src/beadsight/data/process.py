@@ -2,7 +2,7 @@
 
 :func:`process_recording` reads a raw session of either format
 (:mod:`beadsight.data.recording`) and writes a dataset
-(:class:`beadsight.data.writer.DatasetWriter`, which also segments presses):
+(:class:`beadsight.data.dataset_writer.DatasetWriter`, which also segments presses):
 
 * **Labels** (:mod:`beadsight.data.frame_labels`): force interpolated at each frame time,
   never extrapolated; position held from the last executed printer command;
@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from beadsight.config import SensorGeometry
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.data.frame_labels import (
     REASONS,
     FrameLabels,
@@ -35,7 +36,6 @@ from beadsight.data.plausibility import check_recording
 from beadsight.data.process_config import ProcessConfig
 from beadsight.data.qa import plot_qa, qa_paths, quality_summary, write_qa
 from beadsight.data.recording import Recording, RecordingError, open_recording
-from beadsight.data.writer import DatasetWriter
 from beadsight.files import OutputExistsError, refuse_existing
 from beadsight.preprocess import Preprocessor
 
