@@ -18,7 +18,7 @@ from beadsight import PressurePredictor
 from beadsight.checkpoint import PressureModel
 from beadsight.cli import main
 from beadsight.inference.export import export_model
-from beadsight.inference.exported import (
+from beadsight.inference.export_format import (
     FINGERPRINT_KEY,
     META_KEY,
     ExportError,
