@@ -32,13 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
+from beadsight.calibrate.config import CALIBRATION_SPLIT, CalibrateConfig
+from beadsight.calibrate.run import base_checkpoint, calibrate
 from beadsight.checkpoint import load_checkpoint
 from beadsight.evaluation.evaluate import evaluate
-from beadsight.evaluation.metrics import PAPER_METRICS
 from beadsight.inference.machine import cpu_summary
+from beadsight.report.paper import PAPER_METRICS
 from beadsight.sim.dataset import simulate_dataset
-from beadsight.train.calibrate import base_checkpoint, calibrate
-from beadsight.train.calibrate_config import CALIBRATION_SPLIT, CalibrateConfig
 from beadsight.train.config import TrainConfig
 from beadsight.train.trainer import train
 

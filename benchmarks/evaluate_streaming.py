@@ -24,7 +24,7 @@ import torch
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.data.writer import DatasetWriter
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.inference.machine import cpu_summary
 

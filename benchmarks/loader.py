@@ -1,6 +1,6 @@
 """Training-loader throughput (windows/s) against the training step's samples/s.
 
-Writes a dataset with :class:`beadsight.data.writer.DatasetWriter` into a temporary
+Writes a dataset with :class:`beadsight.data.dataset_writer.DatasetWriter` into a temporary
 folder (default 20 presses x 150 frames of 256x256 textured frames), then measures:
 
 * **host** mode: ``WindowDataset`` + DataLoader workers reading each window as one
@@ -40,8 +40,8 @@ from train_speed import (  # sibling script (benchmarks/ is on sys.path)
 
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import open_dataset
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.data.splits import window_ends
-from beadsight.data.writer import DatasetWriter
 from beadsight.inference.machine import cpu_summary
 from beadsight.train.windows import (
     DeviceFrames,

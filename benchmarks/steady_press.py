@@ -69,7 +69,8 @@ def run_steady_press(
     """Hold a simulated press ``hold_s`` s and read it live (module docstring).
 
     drift: the simulator's drift text; settings: LiveSettings (default: the defaults)."""
-    from beadsight.checkpoint import load_checkpoint, shipped_model_path
+    from beadsight.assets import shipped_model_path
+    from beadsight.checkpoint import load_checkpoint
     from beadsight.devices.virtual.camera import SimCamera
     from beadsight.live.sensor import LiveSensor
     from beadsight.live.settings import LiveSettings

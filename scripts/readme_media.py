@@ -51,7 +51,7 @@ def run_demo(out: Path) -> dict:
 
 def metrics_markdown(summary: dict) -> str:
     """The demo's metrics as a Markdown table, this run marked against the paper."""
-    from beadsight.evaluation.metrics import PAPER_METRICS, TABLE_ROWS, compare_with_paper
+    from beadsight.report.paper import PAPER_METRICS, TABLE_ROWS, compare_with_paper
 
     metrics, baselines = summary["metrics"], summary.get("baselines") or {}
     metrics = {**metrics, "frames": summary["frames_evaluated"]}
@@ -121,7 +121,7 @@ def viewer_screenshot(path: Path) -> int:
     from PIL import Image
     from playwright.sync_api import sync_playwright
 
-    from beadsight.checkpoint import shipped_model_path
+    from beadsight.assets import shipped_model_path
 
     model = shipped_model_path()  # named relative to the repository: the page shows it
     if model.is_relative_to(ROOT):

@@ -7,7 +7,8 @@ import json
 import h5py
 import pytest
 
-from beadsight.checkpoint import CheckpointError, load_checkpoint, shipped_model_path
+from beadsight.assets import shipped_model_path
+from beadsight.checkpoint import CheckpointError, load_checkpoint
 from beadsight.cli import main
 from beadsight.demo import TRAIN_DEMO_SEED, training_simulation
 

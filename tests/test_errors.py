@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import pytest
 
-from beadsight.calibration import CalibrationError
 from beadsight.checkpoint import CheckpointError, UnsafeCheckpointError
 from beadsight.config import ConfigError as ConfigErrorFromConfig
 from beadsight.data.dataset import DatasetError
@@ -13,6 +12,7 @@ from beadsight.data.recording import RecordingError
 from beadsight.devices.base import DeviceError
 from beadsight.errors import USER_ERRORS, BeadSightError, ConfigError
 from beadsight.files import WriteError
+from beadsight.lens import LensError
 from beadsight.live.recording.readings import ReadingsFileError
 from beadsight.preprocess import FrameSizeError
 from beadsight.sim.dataset import SimulationError
@@ -23,7 +23,7 @@ FORMERLY_VALUE_ERRORS = (
     UnsafeCheckpointError,
     DatasetError,
     FrameSizeError,
-    CalibrationError,
+    LensError,
     ReadingsFileError,
     SimulationError,
 )

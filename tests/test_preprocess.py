@@ -1,4 +1,4 @@
-"""Preprocessing: the reference unwarp (constants, bit-exact sampling), resizing, calibration."""
+"""Preprocessing: the reference unwarp (constants, bit-exact sampling), resizing, a fitted fisheye lens."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ import cv2
 import numpy as np
 import pytest
 
-from beadsight.calibration import (
-    CalibrationError,
-    FisheyeCalibration,
+from beadsight.lens import (
+    FisheyeLens,
+    LensError,
     board_points,
-    calibrate_fisheye,
-    load_calibration,
+    fit_fisheye_lens,
+    load_lens,
 )
 from beadsight.preprocess import (
     FrameSizeError,
@@ -147,7 +147,7 @@ def test_from_spec():
         Preprocessor.from_spec("fancy", (64, 64), 64)
 
 
-# --- fisheye calibration ------------------------------------------------------------------
+# --- fisheye lens ------------------------------------------------------------------
 TRUE_K = np.array([[115.0, 0, 162.5], [0, 116.0, 118.0], [0, 0, 1]])
 TRUE_D = np.array([0.05, -0.02, 0.01, -0.003])
 PATTERN = (9, 6)
@@ -182,33 +182,31 @@ def _render_views(count: int, hw=(240, 320), supersample=2, seed=1) -> list[np.n
 
 
 @pytest.fixture(scope="module")
-def calibration() -> FisheyeCalibration:
-    return calibrate_fisheye(_render_views(8), PATTERN, SQUARE_MM)
+def lens() -> FisheyeLens:
+    return fit_fisheye_lens(_render_views(8), PATTERN, SQUARE_MM)
 
 
-def test_calibration_recovers_the_model(calibration):
-    assert calibration.views == 8
-    assert calibration.rms_px < 0.3
-    np.testing.assert_allclose(np.diag(calibration.K)[:2], np.diag(TRUE_K)[:2], rtol=0.02)
-    np.testing.assert_allclose(calibration.K[:2, 2], TRUE_K[:2, 2], atol=1.5)
+def test_fitting_recovers_the_lens(lens):
+    assert lens.views == 8
+    assert lens.rms_px < 0.3
+    np.testing.assert_allclose(np.diag(lens.K)[:2], np.diag(TRUE_K)[:2], rtol=0.02)
+    np.testing.assert_allclose(lens.K[:2, 2], TRUE_K[:2, 2], atol=1.5)
     # the mapping (not the correlated coefficients) is what matters: project rays both ways
     angles = np.linspace(0, 1.0, 30)  # up to ~57 degrees off axis
     pts = np.stack([np.tan(angles), 0.5 * np.tan(angles), np.ones_like(angles)], 1)
     zero = np.zeros(3)
     true_px, _ = cv2.fisheye.projectPoints(pts.reshape(1, -1, 3), zero, zero, TRUE_K, TRUE_D)
-    est_px, _ = cv2.fisheye.projectPoints(
-        pts.reshape(1, -1, 3), zero, zero, calibration.K, calibration.D
-    )
+    est_px, _ = cv2.fisheye.projectPoints(pts.reshape(1, -1, 3), zero, zero, lens.K, lens.D)
     assert np.abs(true_px - est_px).max() < 1.0
 
 
-def test_calibration_save_load_and_preprocessor(calibration, tmp_path):
-    path = calibration.save(tmp_path / "cal.json")
-    loaded = load_calibration(path)
-    np.testing.assert_allclose(loaded.K, calibration.K)
-    np.testing.assert_allclose(loaded.D, calibration.D)
+def test_lens_save_load_and_preprocessor(lens, tmp_path):
+    path = lens.save(tmp_path / "cal.json")
+    loaded = load_lens(path)
+    np.testing.assert_allclose(loaded.K, lens.K)
+    np.testing.assert_allclose(loaded.D, lens.D)
     assert loaded.image_hw == (240, 320)
-    pre = Preprocessor.from_fisheye_calibration(
+    pre = Preprocessor.from_fisheye_lens(
         loaded, 32, pfov_deg=100, undistorted_px=200, crop=(40, 40, 120)
     )
     # the optical axis (undistorted centre) maps to the principal point
@@ -218,26 +216,26 @@ def test_calibration_save_load_and_preprocessor(calibration, tmp_path):
     assert pre.map_cols[i, i] == pytest.approx(loaded.K[0, 2], abs=1.0)
     assert pre.map_rows[i, i] == pytest.approx(loaded.K[1, 2], abs=1.0)
     assert pre(np.zeros((240, 320, 3), np.uint8)).shape == (32, 32, 3)
-    assert Preprocessor.from_spec(path, (240, 320), 32).description["kind"] == "fisheye-calibration"
+    assert Preprocessor.from_spec(path, (240, 320), 32).description["kind"] == "fisheye-lens"
     with pytest.raises(FrameSizeError, match="320x240"):
-        Preprocessor.from_fisheye_calibration(loaded, 32, input_hw=(1024, 1280))
+        Preprocessor.from_fisheye_lens(loaded, 32, input_hw=(1024, 1280))
 
 
-def test_calibration_errors(tmp_path):
-    with pytest.raises(CalibrationError, match="at least 3"):
-        calibrate_fisheye([np.full((60, 80), 128, np.uint8)] * 3, PATTERN, SQUARE_MM)
+def test_lens_errors(tmp_path):
+    with pytest.raises(LensError, match="at least 3"):
+        fit_fisheye_lens([np.full((60, 80), 128, np.uint8)] * 3, PATTERN, SQUARE_MM)
     bad = tmp_path / "bad.json"
     bad.write_text(
         '{"format": "beadsight-fisheye-calibration", "K": [[1, 0], [0, 1]], '
         '"D": [0, 0, 0, 0], "image_hw": [10, 10]}'
     )
-    with pytest.raises(CalibrationError, match=r"bad\.json.*3x3"):
-        load_calibration(bad)
+    with pytest.raises(LensError, match=r"bad\.json.*3x3"):
+        load_lens(bad)
     bad.write_text("{not json")
-    with pytest.raises(CalibrationError, match=r"bad\.json: not valid JSON"):
-        load_calibration(bad)
-    with pytest.raises(CalibrationError, match="not found"):
-        load_calibration(tmp_path / "missing.json")
+    with pytest.raises(LensError, match=r"bad\.json: not valid JSON"):
+        load_lens(bad)
+    with pytest.raises(LensError, match="not found"):
+        load_lens(tmp_path / "missing.json")
 
 
 def test_board_points_layout():

@@ -21,7 +21,6 @@ weights, before it builds the model.
 
 from __future__ import annotations
 
-import importlib.resources
 import io
 import json
 from dataclasses import dataclass, field
@@ -41,8 +40,6 @@ from beadsight.model import FramesToPressure, UNet, infer_model_config
 FORMAT = "beadsight-checkpoint"
 FORMAT_VERSION = 3  # written; 3 adds rest-referenced models (model.rest_input)
 READ_VERSIONS = (2, 3)  # read
-SHIPPED_MODEL = "sim_model.pt"  # the simulated-sensor model, in the package's assets folder
-BASE_MODEL = "base_model.pt"  # the any-pouch base model that `calibrate` fine-tunes (assets)
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
 
 
@@ -502,19 +499,6 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except (RuntimeError, TypeError, AttributeError) as e:
         raise CheckpointError(f"{path}: weights do not fit the described model: {e}") from None
     return PressureModel(module, meta, source=str(path)).to(map_location)
-
-
-def shipped_model_path(name: str | None = None) -> Path:
-    """Path of a model shipped with the package (default ``SHIPPED_MODEL``, the simulated
-    sensor's; ``BASE_MODEL``: the any-pouch base); :class:`CheckpointError` if absent."""
-    name = name or SHIPPED_MODEL
-    path = Path(str(importlib.resources.files("beadsight").joinpath("assets", name)))
-    if not path.is_file():
-        raise CheckpointError(
-            f"the shipped model {path} is missing from this install; pass --checkpoint PATH "
-            "(a model trained with `beadsight train`, or `beadsight demo --train`)"
-        )
-    return path
 
 
 def checkpoint_summary(path: str | Path) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Sensor geometry: millimetres <-> pixels, ground-truth pressure disks, force, centre of pressure.
+"""Sensor geometry: mm <-> pixels, pressure disks, force, centre of pressure, Otsu contact.
 
 Conventions
 -----------
@@ -27,6 +27,7 @@ from beadsight.config import REFERENCE_G_TO_N, SensorGeometry
 Array = TypeVar("Array")
 
 PA_PER_KPA = 1000.0
+OTSU_BINS = 256  # histogram bins of the Otsu threshold
 
 
 # --- units --------------------------------------------------------------------------
@@ -178,3 +179,56 @@ def contact_area_mm2(mask, geometry: SensorGeometry):
     """Area of a ``(..., H, W)`` boolean contact mask in mm^2."""
     g = geometry.with_image_size(mask.shape[-1])
     return np.asarray(mask).sum(axis=(-2, -1)) * g.mm_per_px**2
+
+
+# --- Otsu ---------------------------------------------------------------------------
+def _otsu_bins(maps: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-map histogram bin index of every pixel, the split bin k, and the span.
+
+    maps: (B, H, W). returns: idx (B, H*W) int64 in 0..bins-1, k (B,) int64 (class 0 =
+    bins <= k), span (B,) float64 (max - min; 0 for constant maps).
+    """
+    x = maps.reshape(len(maps), -1).astype(np.float64)
+    lo, hi = x.min(axis=1), x.max(axis=1)
+    span = hi - lo
+    scale = np.divide(bins, span, out=np.zeros_like(span), where=span > 0)
+    idx = np.clip(((x - lo[:, None]) * scale[:, None]).astype(np.int64), 0, bins - 1)
+    offsets = np.arange(len(maps), dtype=np.int64)[:, None] * bins
+    hist = np.bincount((idx + offsets).ravel(), minlength=len(maps) * bins)
+    hist = hist.reshape(len(maps), bins).astype(np.float64)
+    centres = np.arange(bins, dtype=np.float64) + 0.5  # bin units: the scale cancels out
+    w0 = np.cumsum(hist, axis=1)
+    s0 = np.cumsum(hist * centres, axis=1)
+    w1 = w0[:, -1:] - w0
+    s1 = s0[:, -1:] - s0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        between = w0 * w1 * (s0 / w0 - s1 / w1) ** 2  # between-class variance * n^2
+    between = np.nan_to_num(between[:, :-1], nan=-1.0)
+    return idx, np.argmax(between, axis=1), span
+
+
+def otsu_thresholds(maps: np.ndarray, bins: int = OTSU_BINS) -> np.ndarray:
+    """Otsu's threshold of each map: (B, H, W) -> (B,) float64, same unit as the maps.
+
+    The threshold maximises the between-class variance of a ``bins``-bin histogram
+    spanning each map's [min, max]; it is the upper edge of the last background
+    bin, so the foreground is ``map > threshold`` (up to values exactly on that
+    edge; :func:`otsu_masks` gives the exact partition). A constant map returns its
+    value (empty foreground).
+    """
+    maps = np.asarray(maps)
+    _, k, span = _otsu_bins(maps, bins)
+    lo = maps.reshape(len(maps), -1).min(axis=1).astype(np.float64)
+    return np.where(span > 0, lo + (k + 1) * span / bins, lo)
+
+
+def otsu_masks(maps: np.ndarray, bins: int = OTSU_BINS) -> np.ndarray:
+    """Foreground of each map by Otsu's method: (B, H, W) -> (B, H, W) bool.
+
+    Pixels in histogram bins above the Otsu split. Constant maps (including
+    all-zero predictions) have an empty foreground.
+    """
+    maps = np.asarray(maps)
+    idx, k, span = _otsu_bins(maps, bins)
+    mask = (idx > k[:, None]) & (span[:, None] > 0)
+    return mask.reshape(maps.shape)

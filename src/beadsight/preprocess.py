@@ -33,11 +33,8 @@ the crop on a 2S x 2S grid and averages 2x2 blocks (antialiased, ~1 ms).
 Frames arrive in OpenCV BGR order; the output is RGB (this project's convention)
 unless ``channel_order="BGR"`` is asked for (the reference stores BGR).
 
-A calibrated alternative: :func:`calibrate_fisheye` fits OpenCV's fisheye model
-(K, D) to checkerboard views, and :meth:`Preprocessor.from_fisheye_calibration`
-builds the remap from it (``cv2.fisheye.initUndistortRectifyMap``) to a
-perspective view with the same 120 degree field of view, cropped like the
-reference.
+With a fitted lens (:mod:`beadsight.lens`) instead: :meth:`Preprocessor.from_fisheye_lens`,
+a perspective view of the same 120 degree field of view, cropped like the reference.
 """
 
 from __future__ import annotations
@@ -54,7 +51,7 @@ import numpy as np
 from beadsight.errors import BeadSightError, ConfigError
 
 if TYPE_CHECKING:
-    from beadsight.calibration import FisheyeCalibration
+    from beadsight.lens import FisheyeLens
 
 logger = logging.getLogger(__name__)
 
@@ -186,7 +183,7 @@ def sample_count(resize: str, crop_px: int, output_size: int) -> int:
 class Preprocessor:
     """Raw camera frame (BGR) -> sensor-space image (RGB by default).
 
-    Build it with :meth:`reference`, :meth:`from_fisheye_calibration` or
+    Build it with :meth:`reference`, :meth:`from_fisheye_lens` or
     :meth:`identity`; call it on frames::
 
         pre = Preprocessor.reference(input_hw=(1024, 1280), output_size=256)
@@ -316,14 +313,46 @@ class Preprocessor:
         )
 
     @classmethod
-    def from_fisheye_calibration(
-        cls, calibration: FisheyeCalibration, output_size: int = REFERENCE_OUTPUT_SIZE, **kwargs
+    def from_fisheye_lens(
+        cls,
+        lens: FisheyeLens,
+        output_size: int = REFERENCE_OUTPUT_SIZE,
+        *,
+        input_hw: tuple[int, int] | None = None,
+        pfov_deg: float = REFERENCE_PFOV_DEG,
+        undistorted_px: int = REFERENCE_SQUARE_PX,
+        crop: tuple[int, int, int] | None = None,
+        resize: str = "area",
+        channel_order: str = "RGB",
     ) -> Preprocessor:
-        """Undistort with a calibrated fisheye model, then crop and resize: see
-        :func:`beadsight.calibration.calibrated_preprocessor` (same arguments)."""
-        from beadsight.calibration import calibrated_preprocessor
+        """Undistort with a fitted fisheye lens to a ``undistorted_px`` perspective square
+        of ``pfov_deg`` field of view (:func:`beadsight.lens.undistort_maps`), crop
+        ``(row0, col0, size)`` of it (default: the reference crop scaled to
+        ``undistorted_px``) and resize, bilinearly."""
+        from beadsight.lens import undistort_maps
 
-        return calibrated_preprocessor(calibration, output_size, **kwargs)
+        input_hw = tuple(input_hw) if input_hw is not None else lens.image_hw
+        if tuple(input_hw) != tuple(lens.image_hw):
+            raise FrameSizeError(
+                f"the lens was fitted on {lens.image_hw[1]}x{lens.image_hw[0]} frames but the "
+                f"preprocessor is for {input_hw[1]}x{input_hw[0]} frames"
+            )
+        check_choice("resize", resize, tuple(RESIZES))
+        r0, c0, n = crop if crop is not None else reference_crop(undistorted_px)
+        samples = sample_count(resize, int(n), output_size)
+        map_x, map_y = undistort_maps(lens, (r0, c0, n), samples, pfov_deg, undistorted_px)
+        description = {"kind": "fisheye-lens", "K": lens.K.tolist(), "D": lens.D.tolist()}
+        description |= {"pfov_deg": pfov_deg, "undistorted_px": undistorted_px}
+        return cls(
+            input_hw=input_hw,
+            output_size=output_size,
+            map_rows=map_y,
+            map_cols=map_x,
+            interpolation="linear",
+            resize=resize,
+            channel_order=channel_order,
+            description={**description, "crop": [int(r0), int(c0), int(n)]},
+        )
 
     @classmethod
     def from_spec(
@@ -335,7 +364,7 @@ class Preprocessor:
         interpolation: str = "reference",
         resize: str = "area",
     ) -> Preprocessor:
-        """Build from a CLI spec: ``"reference"``, ``"none"`` or a calibration JSON path.
+        """Build from a CLI spec: ``"reference"``, ``"none"`` or a lens JSON file's path.
 
         ``interpolation`` applies to ``"reference"``; ``resize`` to all.
         """
@@ -346,13 +375,13 @@ class Preprocessor:
             return cls.identity(output_size, input_hw, resize=resize)
         path = Path(text)
         if path.suffix.lower() == ".json" or path.exists():
-            from beadsight.calibration import load_calibration
+            from beadsight.lens import load_lens
 
-            return cls.from_fisheye_calibration(
-                load_calibration(path), output_size, input_hw=input_hw, resize=resize
+            return cls.from_fisheye_lens(
+                load_lens(path), output_size, input_hw=input_hw, resize=resize
             )
         raise ConfigError(
-            f"preprocess {text!r}: expected 'reference', 'none' or a fisheye calibration .json file"
+            f"preprocess {text!r}: expected 'reference', 'none' or a fisheye lens .json file"
         )
 
     def for_reduced_input(self, factor: int) -> Preprocessor:

@@ -6,8 +6,8 @@ import pytest
 
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import DatasetError, open_dataset
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.data.reference_file import import_reference
-from beadsight.data.writer import DatasetWriter
 
 
 def write_reference_file(path, n=90, size=32, force_g=None, drop=()):

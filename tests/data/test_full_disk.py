@@ -11,8 +11,9 @@ from helpers.recording import Timeline, write_beadsight_raw
 from beadsight.cli import main
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import open_dataset
-from beadsight.data.process import ProcessConfig, process_recording
-from beadsight.data.writer import DatasetWriter
+from beadsight.data.dataset_writer import DatasetWriter
+from beadsight.data.process import process_recording
+from beadsight.data.process_config import ProcessConfig
 from beadsight.files import WriteError
 
 

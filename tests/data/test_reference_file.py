@@ -19,10 +19,10 @@ from helpers.synthetic_presses import make_press_arrays, synthetic_press_frames
 from beadsight.cli import main
 from beadsight.config import REFERENCE_G_TO_N, SensorGeometry
 from beadsight.data.dataset import open_dataset
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.data.labels import label_maps
 from beadsight.data.recording import REFERENCE_CENTRE_XY_MM
 from beadsight.data.reference_file import export_reference
-from beadsight.data.writer import DatasetWriter
 from beadsight.files import OutputExistsError
 
 N_INVALID = (0, 1, 2, 150)  # frames with unknown force and position

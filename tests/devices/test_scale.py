@@ -8,8 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from beadsight.devices import DeviceNotConnectedError, DeviceTimeoutError, HX711Scale, ScaleError
-from beadsight.devices.scale_protocol import (
+from beadsight.data.recording.scale_protocol import (
     ProtocolDetector,
     ReferenceDecoder,
     encode_reference_value,
@@ -17,6 +16,7 @@ from beadsight.devices.scale_protocol import (
     parse_reading,
     parse_reference_value,
 )
+from beadsight.devices import DeviceNotConnectedError, DeviceTimeoutError, HX711Scale, ScaleError
 from beadsight.devices.virtual import VirtualScale
 from beadsight.geometry import grams_to_newtons
 

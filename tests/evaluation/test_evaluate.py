@@ -14,16 +14,15 @@ import torch
 from beadsight.checkpoint import CheckpointMeta, PressureModel, load_checkpoint
 from beadsight.cli import main
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.data.dataset import DatasetError, open_dataset
+from beadsight.data.dataset import DatasetError, dataset_fingerprint, open_dataset
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.data.labels import label_maps
 from beadsight.data.rest import REST_FRAMES, average_rest, rest_ends, with_rest
 from beadsight.data.splits import dataset_window_ends, split_presses, window_ends
 from beadsight.data.windows import resize_frames
-from beadsight.data.writer import DatasetWriter
-from beadsight.evaluation.animation import animation_frames, strongest_press
 from beadsight.evaluation.evaluate import EvaluationError, evaluate, select_split
 from beadsight.geometry import total_force_n
-from beadsight.train.windows import dataset_fingerprint
+from beadsight.report.animation import animation_frames, strongest_press
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # a shared 2-core machine
 REQUIRED_KEYS = {

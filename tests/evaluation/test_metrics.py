@@ -12,16 +12,13 @@ import pytest
 from beadsight.config import SensorGeometry
 from beadsight.evaluation.metrics import (
     MIN_SHAPE_FORCE_N,
-    PAPER_METRICS,
     MetricsAccumulator,
     compute_metrics,
     contact_iou,
-    format_metrics_table,
-    otsu_masks,
-    otsu_thresholds,
     region_cells,
 )
-from beadsight.geometry import disk_maps
+from beadsight.geometry import disk_maps, otsu_masks, otsu_thresholds
+from beadsight.report.paper import PAPER_METRICS, format_metrics_table
 
 G = SensorGeometry(image_size_px=64)
 MM_PER_PX = 41 / 64  # 0.640625

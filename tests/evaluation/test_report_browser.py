@@ -9,7 +9,7 @@ import shutil
 import pytest
 from helpers.browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
 
-from beadsight.checkpoint import shipped_model_path
+from beadsight.assets import shipped_model_path
 from beadsight.cli import main
 
 pytestmark = [

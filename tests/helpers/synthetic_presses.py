@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from beadsight.config import SensorGeometry
-from beadsight.data.writer import DatasetWriter
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.geometry import mm_to_px
 
 

@@ -20,7 +20,7 @@ from beadsight.checkpoint import PressureModel
 from beadsight.cli import main
 from beadsight.inference.backend import BackendUnavailableError
 from beadsight.inference.export import export_model
-from beadsight.inference.exported import (
+from beadsight.inference.export_format import (
     FINGERPRINT_KEY,
     META_KEY,
     ExportError,

@@ -24,7 +24,7 @@ def test_named_backend_that_disagrees_is_refused(probe_model, tmp_path):
     """An ONNX file whose metadata claims this checkpoint but holds other weights."""
     import onnx
 
-    from beadsight.inference.exported import exported_metadata, write_onnx
+    from beadsight.inference.export_format import exported_metadata, write_onnx
 
     torch.manual_seed(123)
     impostor = PressureModel.create(probe_model.meta)

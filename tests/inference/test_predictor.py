@@ -10,12 +10,12 @@ import pytest
 from beadsight import PressurePredictor, PressureReading
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig
-from beadsight.evaluation.metrics import otsu_thresholds
 from beadsight.geometry import (
     centre_of_pressure_mm,
     contact_area_mm2,
     disk_maps,
     disk_pressure_kpa,
+    otsu_thresholds,
     total_force_n,
 )
 from beadsight.inference.predictor import DEFAULT_FPS, PredictorSettings

@@ -483,9 +483,9 @@ def test_cli_live_sim_headless_straight_to_mcap(model, tmp_path, capsys):
 
 
 def test_cli_live_user_errors_are_one_line(model, tmp_path, capsys, monkeypatch):
-    import beadsight.checkpoint
+    import beadsight.assets
 
-    monkeypatch.setattr(beadsight.checkpoint, "SHIPPED_MODEL", "absent.pt")
+    monkeypatch.setattr(beadsight.assets, "SHIPPED_MODEL", "absent.pt")
     assert main(["live", "--no-viewer"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "absent.pt" in err[0] and "--checkpoint" in err[0]

@@ -20,8 +20,8 @@ from beadsight import load_checkpoint
 from beadsight.checkpoint import CheckpointError, read_checkpoint_file
 from beadsight.cli import main
 from beadsight.config import ConfigError, SensorGeometry
-from beadsight.data.dataset import DatasetError, open_dataset
-from beadsight.data.writer import DatasetWriter
+from beadsight.data.dataset import DatasetError, dataset_fingerprint, open_dataset
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.geometry import disk_pressure_kpa
 from beadsight.train.config import TrainConfig, resolve_train_config
 from beadsight.train.distributed import Distributed
@@ -29,7 +29,6 @@ from beadsight.train.prepare import output_scale_kpa
 from beadsight.train.run import METRIC_KEYS
 from beadsight.train.step import model_inputs
 from beadsight.train.trainer import Trainer, train
-from beadsight.train.windows import dataset_fingerprint
 
 FAST = ["--width", "8", "--no-progress"]
 

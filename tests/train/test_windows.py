@@ -8,10 +8,10 @@ import pytest
 import torch
 from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
-from beadsight.data.dataset import open_dataset
+from beadsight.data.dataset import dataset_fingerprint, open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.splits import dataset_window_ends, split_presses, window_ends
-from beadsight.data.windows import WindowReader
+from beadsight.data.windows import WindowReader, pixel_stats
 from beadsight.train.augment import D4_ORDER, d4_batch, d4_transform
 from beadsight.train.windows import (
     DeviceFrames,
@@ -21,9 +21,7 @@ from beadsight.train.windows import (
     WindowLoader,
     batches_per_epoch,
     choose_loader_mode,
-    dataset_fingerprint,
     epoch_batches,
-    pixel_stats,
     window_frame_mask,
 )
 

@@ -58,8 +58,7 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
         p,
         "--preprocess",
         config.PREDICT_PREPROCESS,
-        "auto, none, reference, reference-linear, or a fisheye calibration .json "
-        "(video input only)",
+        "auto, none, reference, reference-linear, or a fisheye lens .json (video input only)",
     )
     p.add_argument(
         "--rest",
@@ -88,7 +87,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     plots to --out and print the metrics beside the paper's.
     """
     from beadsight.evaluation.evaluate import evaluate
-    from beadsight.evaluation.metrics import format_metrics_table
+    from beadsight.report.paper import format_metrics_table
 
     metrics = evaluate(
         args.checkpoint,

@@ -41,7 +41,7 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
         default="auto",
         help="frame preprocessing: auto (default: model-size frames as they are, 1280x1024 "
         "through the reference unwarp, other sizes refused); or reference, reference-linear, "
-        "none, or a fisheye calibration .json",
+        "none, or a fisheye lens .json",
     )
     p.add_argument(
         "--fps",

@@ -167,8 +167,8 @@ CALIBRATE_FLAGS = (
 
 
 def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.calibrate.config import LAYER_CHOICES, CalibrateConfig
     from beadsight.cli.options import add_fields
-    from beadsight.train.calibrate_config import LAYER_CHOICES, CalibrateConfig
 
     p.add_argument(
         "--data", required=True, help="the new sensor's presses (.h5, ours or the reference's)"
@@ -192,9 +192,9 @@ def _calibrate(args: argparse.Namespace) -> int:
     OUT/metrics.json and OUT/report.html: metrics on test presses of this sensor beside
     the paper's, the base model's zero-shot figures and the alignment alone.
     """
+    from beadsight.calibrate.config import REPORT_FILE, CalibrateConfig
+    from beadsight.calibrate.run import calibrate
     from beadsight.cli.options import field_values
-    from beadsight.train.calibrate import calibrate
-    from beadsight.train.calibrate_config import REPORT_FILE, CalibrateConfig
 
     metrics = calibrate(CalibrateConfig(**field_values(args, CalibrateConfig)))
     stages = metrics["stages"]

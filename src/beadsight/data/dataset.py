@@ -3,12 +3,13 @@
 See docs/data-format.md for the layout. :func:`open_dataset` reads this project's
 files and the reference processed files alike and presents them through one
 :class:`Dataset` object (forces in newtons, positions in mm, float64 timestamps,
-press segmentation). Writing: :class:`beadsight.data.writer.DatasetWriter`; the
+press segmentation). Writing: :class:`beadsight.data.dataset_writer.DatasetWriter`; the
 reference layout: :mod:`beadsight.data.reference_file`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ from beadsight.h5safe import find_dataset, open_h5
 
 FORMAT = "beadsight-dataset"
 FORMAT_VERSION = 1
+FINGERPRINT_SAMPLE_FRAMES = 4  # frames hashed (besides all labels) in a dataset fingerprint
 
 
 class DatasetError(BeadSightError, ValueError):
@@ -286,3 +288,16 @@ def _fields(f: h5py.File, path: Path, frames: h5py.Dataset, load) -> dict[str, A
         "pixel_mean": f.attrs.get("pixel_mean"),
         "pixel_std": f.attrs.get("pixel_std"),
     }
+
+
+def dataset_fingerprint(ds: Dataset) -> str:
+    """A short hash identifying a dataset's content: shapes, all per-frame labels
+    (force, position, validity) and a few frames. Cheap even for 20 GB files."""
+    h = hashlib.sha256()
+    h.update(repr((tuple(ds.frames.shape), ds.channel_order, ds.geometry.to_json())).encode())
+    for arr in (ds.force_n, ds.position_mm, ds.valid):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    n = len(ds)
+    for i in np.unique(np.linspace(0, n - 1, min(n, FINGERPRINT_SAMPLE_FRAMES)).astype(int)):
+        h.update(np.ascontiguousarray(ds.frames[int(i)]).tobytes())
+    return h.hexdigest()[:16]

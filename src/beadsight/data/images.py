@@ -4,7 +4,7 @@ Frames are read chunk by chunk in dataset order by one reader thread and pushed
 through a :class:`~beadsight.preprocess.Preprocessor` on a thread pool (OpenCV
 releases the GIL); for MJPG video the JPEGs are decoded by the workers, at reduced
 size when the output does not need full resolution. The finished frames go to a
-:class:`~beadsight.data.writer.DatasetWriter` in batches, with their labels.
+:class:`~beadsight.data.dataset_writer.DatasetWriter` in batches, with their labels.
 """
 
 from __future__ import annotations
@@ -14,27 +14,30 @@ import os
 import queue
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
 from beadsight.config import ConfigError
-from beadsight.data.align import FrameLabels
+from beadsight.data.dataset_writer import DatasetWriter
+from beadsight.data.frame_labels import FrameLabels
+from beadsight.data.process_config import DECODE_SCALES, ProcessConfig
 from beadsight.data.recording import Recording, RecordingError, iter_video
-from beadsight.data.writer import DatasetWriter
 from beadsight.preprocess import Preprocessor
 
-if TYPE_CHECKING:
-    from beadsight.data.process import ProcessConfig
-
-DECODE_FLAGS = {
-    1: cv2.IMREAD_COLOR,
-    2: cv2.IMREAD_REDUCED_COLOR_2,
-    4: cv2.IMREAD_REDUCED_COLOR_4,
-    8: cv2.IMREAD_REDUCED_COLOR_8,
-}
+DECODE_FLAGS = dict(
+    zip(
+        DECODE_SCALES,
+        (
+            cv2.IMREAD_COLOR,
+            cv2.IMREAD_REDUCED_COLOR_2,
+            cv2.IMREAD_REDUCED_COLOR_4,
+            cv2.IMREAD_REDUCED_COLOR_8,
+        ),
+        strict=True,
+    )
+)
 INFLIGHT_PER_WORKER = 4  # frames queued per preprocessing thread
 
 # --- streaming images -------------------------------------------------------------------

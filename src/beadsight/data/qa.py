@@ -8,18 +8,16 @@ they were, dropped frames, force range, invalid frames and why, what was decoded
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from beadsight.data.align import REASONS, FrameLabels
 from beadsight.data.dataset import open_dataset
+from beadsight.data.frame_labels import REASONS, FrameLabels
+from beadsight.data.process_config import ProcessConfig
 from beadsight.data.recording import Recording
 from beadsight.files import atomic_write, atomic_write_json
 from beadsight.preprocess import Preprocessor
-
-if TYPE_CHECKING:
-    from beadsight.data.process import ProcessConfig
 
 DROP_GAP_FRAMES = 1.5  # a gap between frame times above this many frame periods is a drop
 

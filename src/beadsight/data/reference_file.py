@@ -33,7 +33,7 @@ import numpy as np
 
 from beadsight.config import REFERENCE_CENTRE_XY_MM, REFERENCE_G_TO_N
 from beadsight.data.dataset import Dataset, DatasetError, open_dataset
-from beadsight.data.writer import DatasetWriter
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.files import (
     WriteError,
     describe_write_failure,

@@ -29,6 +29,8 @@ from beadsight.data.rest import (
 if TYPE_CHECKING:
     from beadsight.data.dataset import Dataset
 
+STATS_MAX_FRAMES = 512  # frames sampled for the pixel mean/std
+
 
 def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
     """(n, S, S, 3) uint8 -> (n, size, size, 3) uint8 by area averaging (cv2.INTER_AREA)."""
@@ -149,3 +151,26 @@ def read_windows(
 ) -> np.ndarray:
     """:class:`WindowReader` in one call: (B,) end indices -> (B, inputs, S, S, 3) uint8 RGB."""
     return WindowReader(ds, span, image_size, rest)(ends)
+
+
+def pixel_stats(
+    ds: Dataset, frame_mask: np.ndarray, image_size: int, max_frames: int = STATS_MAX_FRAMES
+) -> tuple[list[float], list[float]]:
+    """Per-channel RGB mean and std (0..255 units) of up to ``max_frames`` frames in ``frame_mask``,
+    evenly spaced, measured at the training ``image_size`` (what the network sees)."""
+    idx = np.flatnonzero(frame_mask)
+    if len(idx) == 0:
+        raise ValueError(f"{ds.path}: no frames to measure pixel statistics on")
+    idx = idx[np.unique(np.linspace(0, len(idx) - 1, min(len(idx), max_frames)).astype(np.int64))]
+    total = np.zeros(3)
+    total_sq = np.zeros(3)
+    count = 0
+    for i in range(0, len(idx), 64):
+        block = resize_frames(ds.read_frames_at(idx[i : i + 64]), image_size)
+        pixels = block.reshape(-1, 3).astype(np.float64)
+        total += pixels.sum(0)
+        total_sq += (pixels * pixels).sum(0)
+        count += len(pixels)
+    mean = total / count
+    std = np.sqrt(np.maximum(total_sq / count - mean**2, 0.0))
+    return mean.tolist(), np.maximum(std, 1e-3).tolist()

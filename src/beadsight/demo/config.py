@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 from beadsight.config import _Serializable
 from beadsight.errors import BeadSightError
-from beadsight.evaluation.config import ANIMATION_MAX_FRAMES
 
 DEMO_SEED = 90_210  # held-out presses; training sets must use other seeds
 TRAIN_DEMO_SEED = 31_337  # the training set of ``demo --train``
@@ -15,6 +14,7 @@ DEFAULT_OUT = "beadsight-demo"
 MARKER = "demo.json"  # a folder holding this file is a demo report and may be overwritten
 HELDOUT_FILE = "heldout.h5"
 ANIMATION_FILE = "animation.gif"
+ANIMATION_MAX_FRAMES = 72  # at most this many (consecutive) animated frames in the report
 INDEX_FILE = "index.html"
 # The reference training recipe (reference-facts section 7), for the time estimate.
 REFERENCE_PRESSES = 500

@@ -1,5 +1,5 @@
 """The demo's report folder: ``demo.json`` (what was run) and the report page, built by
-:mod:`beadsight.evaluation.report` with the animation of one press first."""
+:mod:`beadsight.report.page` with the animation of one press first."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from beadsight.demo.config import (
     DemoConfig,
     DemoError,
 )
-from beadsight.evaluation.animation import animation_caption
-from beadsight.evaluation.report import (
+from beadsight.report.animation import animation_caption
+from beadsight.report.page import (
     Figure,
     Report,
     evaluation_figures,
@@ -48,7 +48,7 @@ def demo_summary(
     extra: dict,
 ) -> dict:
     """What demo.json holds: what was run, on what, the metrics, timings and files."""
-    from beadsight.evaluation.metrics import PAPER_METRICS, format_metrics_table
+    from beadsight.report.paper import PAPER_METRICS, format_metrics_table
 
     files = dict(
         metrics.get("files", {}), animation=ANIMATION_FILE, report=INDEX_FILE, summary=MARKER

@@ -13,7 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from beadsight.checkpoint import PressureModel, shipped_model_path
+from beadsight.assets import shipped_model_path
+from beadsight.checkpoint import PressureModel
 from beadsight.demo.config import (
     ANIMATION_FILE,
     DEFAULT_TRAIN_FRACTION,
@@ -31,14 +32,14 @@ from beadsight.demo.config import (
     DemoError,
 )
 from beadsight.demo.report import demo_report, demo_summary, prepare_out_dir
-from beadsight.evaluation.animation import (
+from beadsight.files import atomic_write_json
+from beadsight.report.animation import (
     animation_colour_max,
     animation_frames,
     strongest_press,
     write_animation,
 )
-from beadsight.evaluation.report import write_report
-from beadsight.files import atomic_write_json
+from beadsight.report.page import write_report
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
 
 logger = logging.getLogger(__name__)

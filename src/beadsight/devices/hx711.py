@@ -3,9 +3,10 @@
 :class:`HX711Scale` opens the Arduino's serial port, reads one reading per line in a
 background thread and stamps each with both host clocks the moment its line arrives.
 It speaks the beadsight firmware protocol (``firmware/scale/scale.ino``) and the
-reference sketch's plain format, described in :mod:`beadsight.devices.scale_protocol`;
-``protocol="auto"`` decides from the first lines (:class:`~beadsight.devices.scale_protocol.
-ProtocolDetector`: one partial first line cannot make it pick the wrong protocol).
+reference sketch's plain format, both described in
+:mod:`beadsight.data.recording.scale_protocol` (the format force logs keep);
+``protocol="auto"`` decides from the first lines (``ProtocolDetector``: one partial
+first line cannot make it pick the wrong protocol).
 
 * Readings go to a thread-safe buffer: :meth:`~HX711Scale.latest`,
   :meth:`~HX711Scale.readings_since`, :meth:`~HX711Scale.drain`,
@@ -41,6 +42,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from beadsight.data.recording.scale_protocol import (
+    SUPPORTED_RATES_HZ,
+    DeviceInfo,
+    ProtocolDetector,
+    ReferenceDecoder,
+    parse_info,
+    parse_reading,
+    parse_reference_value,
+)
 from beadsight.devices.base import (
     DeviceContext,
     DeviceError,
@@ -50,15 +60,6 @@ from beadsight.devices.base import (
     ScaleReading,
     host_now,
     wait_or_time_out,
-)
-from beadsight.devices.scale_protocol import (
-    SUPPORTED_RATES_HZ,
-    DeviceInfo,
-    ProtocolDetector,
-    ReferenceDecoder,
-    parse_info,
-    parse_reading,
-    parse_reference_value,
 )
 from beadsight.devices.serial_port import SerialLines, open_serial
 from beadsight.geometry import grams_to_newtons

@@ -1,2 +1,2 @@
-"""Scoring a model: the paper's metrics, evaluation on a dataset, prediction over a
-recording or video, and the plots of a report."""
+"""Scoring a model: the paper's metrics, evaluation on a dataset and prediction over a
+recording or video. Their reports are drawn by :mod:`beadsight.report`."""

@@ -9,5 +9,4 @@ DEFAULT_SPLIT = "test"
 DEFAULT_DEVICE = "auto"  # auto | cpu | cuda | cuda:N | mps
 EVALUATE_BATCH_SIZE = 16  # windows per forward pass
 PREDICT_BATCH_SIZE = 8
-ANIMATION_MAX_FRAMES = 72  # at most this many (consecutive) animated frames in a report
-PREDICT_PREPROCESS = "auto"  # auto | none | reference | reference-linear | calibration .json
+PREDICT_PREPROCESS = "auto"  # auto | none | reference | reference-linear | lens .json

@@ -19,7 +19,7 @@ them, and each input gets it by training's rule (:mod:`beadsight.data.rest`, rea
   index, appended batch by batch under a temporary name (attribute ``rest_source``:
   ``"dataset"`` for a rest-referenced model, else ``"none"``);
 * ``examples.png``, ``region_error.png``, ``force_traces.png``;
-* ``index.html``: the report page (:mod:`beadsight.evaluation.report`).
+* ``index.html``: the report page (:mod:`beadsight.report.page`).
 
 A write that fails (disk full) raises :class:`beadsight.files.WriteError`; no file
 is left damaged under its final name (``predictions.h5`` is written as
@@ -48,15 +48,8 @@ from beadsight.data.labels import label_maps
 from beadsight.data.windows import WindowReader
 from beadsight.evaluation.config import DEFAULT_DEVICE, DEFAULT_SPLIT
 from beadsight.evaluation.config import EVALUATE_BATCH_SIZE as DEFAULT_BATCH_SIZE
-from beadsight.evaluation.metrics import PAPER_METRICS, FrameMetrics, MetricsAccumulator
-from beadsight.evaluation.plots import (
-    ForceTrace,
-    plot_examples,
-    plot_force_traces,
-    plot_region_errors,
-)
+from beadsight.evaluation.metrics import FrameMetrics, MetricsAccumulator
 from beadsight.evaluation.predict import IncrementalH5, as_model
-from beadsight.evaluation.report import REPORT_FILE, evaluation_report, write_report
 from beadsight.evaluation.rest_images import REST_FROM_DATASET, REST_NONE
 from beadsight.evaluation.selection import (
     SPLIT_CHOICES,
@@ -70,6 +63,14 @@ from beadsight.evaluation.selection import (
     subsample,
 )
 from beadsight.files import atomic_write_json
+from beadsight.report.page import REPORT_FILE, evaluation_report, write_report
+from beadsight.report.paper import PAPER_METRICS
+from beadsight.report.plots import (
+    ForceTrace,
+    plot_examples,
+    plot_force_traces,
+    plot_region_errors,
+)
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ code's defects):
   positive pressure has no centroid; it is *measured from the sensor centre*
   (its CoP is taken to be (0, 0) mm), a finite penalty equal to the distance of the
   true CoP from the centre. Such frames are counted in ``cop_empty_prediction_frames``.
-* **contact IoU** (0..1): Otsu threshold (:func:`otsu_masks`) on the predicted map
+* **contact IoU** (0..1): Otsu threshold (:func:`beadsight.geometry.otsu_masks`) on the predicted map
   vs the true contact disk, on frames with ``F_gt >= 2 N`` (every such frame, not a
   subsample). An empty or constant prediction has an empty mask: IoU 0.
   The paper compares with ``gt > 0`` on hard-edged disk labels. Our labels are
@@ -42,74 +42,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from beadsight.config import SensorGeometry
-from beadsight.geometry import centre_of_pressure_mm, mm_to_px, total_force_n
+from beadsight.geometry import centre_of_pressure_mm, mm_to_px, otsu_masks, total_force_n
+from beadsight.report.paper import REGION_GRID
 
 MIN_SHAPE_FORCE_N = 2.0  # CoP and IoU only on frames with at least this true force (paper)
-REGION_GRID = 4  # the paper's 4 x 4 grid of press-location cells (10.25 mm at 41 mm)
-OTSU_BINS = 256  # histogram bins of the Otsu threshold
-
-# The paper's figures (BeadSight, George et al. 2024, table of results).
-PAPER_METRICS: dict[str, float] = {
-    "mae_kpa": 0.79,
-    "force_error_pct": 11.9,
-    "cop_error_mm": 1.18,
-    "iou": 0.81,
-    "worst_region_mae_kpa": 1.05,
-}
-HIGHER_IS_BETTER = frozenset({"iou"})  # every other paper metric is an error: lower is better
-
-
-# --- Otsu ---------------------------------------------------------------------------
-def _otsu_bins(maps: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-map histogram bin index of every pixel, the split bin k, and the span.
-
-    maps: (B, H, W). returns: idx (B, H*W) int64 in 0..bins-1, k (B,) int64 (class 0 =
-    bins <= k), span (B,) float64 (max - min; 0 for constant maps).
-    """
-    x = maps.reshape(len(maps), -1).astype(np.float64)
-    lo, hi = x.min(axis=1), x.max(axis=1)
-    span = hi - lo
-    scale = np.divide(bins, span, out=np.zeros_like(span), where=span > 0)
-    idx = np.clip(((x - lo[:, None]) * scale[:, None]).astype(np.int64), 0, bins - 1)
-    offsets = np.arange(len(maps), dtype=np.int64)[:, None] * bins
-    hist = np.bincount((idx + offsets).ravel(), minlength=len(maps) * bins)
-    hist = hist.reshape(len(maps), bins).astype(np.float64)
-    centres = np.arange(bins, dtype=np.float64) + 0.5  # bin units: the scale cancels out
-    w0 = np.cumsum(hist, axis=1)
-    s0 = np.cumsum(hist * centres, axis=1)
-    w1 = w0[:, -1:] - w0
-    s1 = s0[:, -1:] - s0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        between = w0 * w1 * (s0 / w0 - s1 / w1) ** 2  # between-class variance * n^2
-    between = np.nan_to_num(between[:, :-1], nan=-1.0)
-    return idx, np.argmax(between, axis=1), span
-
-
-def otsu_thresholds(maps: np.ndarray, bins: int = OTSU_BINS) -> np.ndarray:
-    """Otsu's threshold of each map: (B, H, W) -> (B,) float64, same unit as the maps.
-
-    The threshold maximises the between-class variance of a ``bins``-bin histogram
-    spanning each map's [min, max]; it is the upper edge of the last background
-    bin, so the foreground is ``map > threshold`` (up to values exactly on that
-    edge; :func:`otsu_masks` gives the exact partition). A constant map returns its
-    value (empty foreground).
-    """
-    maps = np.asarray(maps)
-    _, k, span = _otsu_bins(maps, bins)
-    lo = maps.reshape(len(maps), -1).min(axis=1).astype(np.float64)
-    return np.where(span > 0, lo + (k + 1) * span / bins, lo)
-
-
-def otsu_masks(maps: np.ndarray, bins: int = OTSU_BINS) -> np.ndarray:
-    """Foreground of each map by Otsu's method: (B, H, W) -> (B, H, W) bool.
-
-    Pixels in histogram bins above the Otsu split. Constant maps (including
-    all-zero predictions) have an empty foreground.
-    """
-    maps = np.asarray(maps)
-    idx, k, span = _otsu_bins(maps, bins)
-    mask = (idx > k[:, None]) & (span[:, None] > 0)
-    return mask.reshape(maps.shape)
 
 
 def gt_contact_masks(gt_kpa: np.ndarray) -> np.ndarray:
@@ -332,56 +268,3 @@ def compute_metrics(
     acc = MetricsAccumulator(geometry)
     acc.update(pred_kpa, gt_kpa, position_mm)
     return acc.result()
-
-
-# --- reporting ----------------------------------------------------------------------
-TABLE_ROWS = (  # (metric key, label with unit, format) of the metrics tables
-    ("mae_kpa", "pressure MAE (kPa)", "{:.3f}"),
-    ("force_error_pct", "total-force error (%)", "{:.1f}"),
-    ("cop_error_mm", "centre of pressure (mm)", "{:.2f}"),
-    ("iou", "contact IoU (0..1)", "{:.3f}"),
-    ("worst_region_mae_kpa", "worst 4x4 region MAE (kPa)", "{:.3f}"),
-    ("frames", "frames", "{:d}"),
-)
-
-
-def format_metrics_table(metrics: dict, baselines: dict[str, dict] | None = None) -> str:
-    """A plain-text table: this run beside the paper's figures (and baselines, if given).
-
-    metrics: a result dict (keys as in :meth:`MetricsAccumulator.result`).
-    baselines: optional {name: metrics dict}, each shown as an extra column.
-    Missing values show as "n/a".
-    """
-    columns = [("this run", metrics), ("paper", PAPER_METRICS)]
-    columns += [(f"baseline: {name}", m) for name, m in (baselines or {}).items()]
-
-    def cell(m: dict, key: str, fmt: str) -> str:
-        value = m.get(key)
-        if value is None:
-            return "n/a" if m is not PAPER_METRICS else "-"
-        return fmt.format(int(value) if fmt == "{:d}" else float(value))
-
-    rows = [["metric", *(name for name, _ in columns)]]
-    rows += [[label, *(cell(m, key, fmt) for _, m in columns)] for key, label, fmt in TABLE_ROWS]
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = []
-    for n, row in enumerate(rows):
-        first = row[0].ljust(widths[0])
-        rest = [v.rjust(w) for v, w in zip(row[1:], widths[1:], strict=True)]
-        lines.append("  ".join([first, *rest]))
-        if n == 0:
-            lines.append("  ".join("-" * w for w in widths))
-    return "\n".join(lines)
-
-
-def compare_with_paper(key: str, value: float | None, fmt: str = "{:.3g}") -> str | None:
-    """ "better", "worse" or "same" than the paper's figure for metric ``key``, as shown
-    with ``fmt`` (values that print alike are the same); None if either is missing."""
-    paper = PAPER_METRICS.get(key)
-    if value is None or paper is None:
-        return None
-    ours, theirs = float(fmt.format(float(value))), float(fmt.format(float(paper)))
-    if ours == theirs:
-        return "same"
-    higher = key in HIGHER_IS_BETTER
-    return "better" if (ours > theirs) == higher else "worse"

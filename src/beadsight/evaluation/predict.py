@@ -281,7 +281,7 @@ def predict_recording(
     preprocess: how video frames become model input, the rule of
     :mod:`beadsight.inference.frames` ("auto": frames at the model's size as they are,
     raw 1280x1024 camera frames through the reference pipeline, other sizes refused;
-    "none", "reference", "reference-linear", or a fisheye calibration .json). Dataset
+    "none", "reference", "reference-linear", or a fisheye lens .json). Dataset
     frames are already preprocessed ("auto" or "none").
     rest: for a rest-referenced model, a rest file
     (:func:`~beadsight.data.rest.load_rest_file`); without it

@@ -73,7 +73,7 @@ def _stored_split(training: dict, ds: Dataset) -> tuple[dict[str, np.ndarray] | 
 
     ``training`` is ``meta.training`` as the training run writes it: ``split``
     ({"train", "val", "test"} press ids), ``dataset_fingerprint``
-    (:func:`beadsight.train.windows.dataset_fingerprint`), ``split_fractions``,
+    (:func:`beadsight.data.dataset.dataset_fingerprint`), ``split_fractions``,
     ``split_seed``. A stored ``num_presses`` (inside ``split``) is checked too.
     """
     stored = training.get("split")
@@ -91,7 +91,7 @@ def _stored_split(training: dict, ds: Dataset) -> tuple[dict[str, np.ndarray] | 
         return None, f"it names press {largest}, the dataset has {ds.num_presses} presses"
     stored_fp = training.get("dataset_fingerprint", stored.get("dataset_fingerprint"))
     if stored_fp is not None:
-        from beadsight.train.windows import dataset_fingerprint
+        from beadsight.data.dataset import dataset_fingerprint
 
         ours = dataset_fingerprint(ds)
         if ours != stored_fp:

@@ -1,7 +1,7 @@
 """Export a checkpoint to ONNX or OpenVINO IR, checked against torch before it is kept.
 
 The file format (the graph's input and output, the metadata it carries) is described
-in :mod:`beadsight.inference.exported`, which writes and reads it.
+in :mod:`beadsight.inference.export_format`, which writes and reads it.
 
 Using an exported ONNX file without beadsight (only numpy and onnxruntime)::
 
@@ -30,7 +30,7 @@ from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.errors import ConfigError
 from beadsight.inference.config import EXPORT_FORMATS as FORMATS
 from beadsight.inference.config import EXPORT_PRECISIONS
-from beadsight.inference.exported import (
+from beadsight.inference.export_format import (
     ExportError,
     model_fingerprint,
     write_onnx,

@@ -14,7 +14,7 @@ to ``preprocess``:
 ``"reference"``        the reference pipeline, for frames of any size (its
                        nearest-neighbour unwarp, as the reference code samples).
 ``"reference-linear"`` the reference pipeline with bilinear unwarp sampling.
-a ``.json`` path       a fisheye calibration (:mod:`beadsight.preprocess`).
+a ``.json`` path       a fitted fisheye lens (:mod:`beadsight.lens`).
 =====================  ===========================================================
 
 Sizes in messages are width x height, as cameras are described ("1280x1024").
@@ -32,7 +32,7 @@ import numpy as np
 from beadsight.preprocess import REFERENCE_INPUT_HW, FrameSizeError, Preprocessor
 
 PREPROCESS_AUTO = "auto"
-PREPROCESS_NAMED = ("auto", "none", "reference", "reference-linear")  # or a calibration .json
+PREPROCESS_NAMED = ("auto", "none", "reference", "reference-linear")  # or a lens .json
 
 
 @dataclass(frozen=True)
@@ -40,7 +40,7 @@ class InputConverter:
     """Turns frames like the first one into model input.
 
     mode: what was chosen: "none" (used as they are), "reference",
-    "reference-linear", or the calibration file's path.
+    "reference-linear", or a lens file's path.
     """
 
     mode: str
@@ -60,7 +60,7 @@ def check_preprocess(preprocess: str | Path | None) -> str:
         return text
     raise ValueError(
         f"preprocess {text!r}: expected one of {', '.join(PREPROCESS_NAMED)} or a fisheye "
-        "calibration .json file"
+        "lens .json file"
     )
 
 
@@ -89,18 +89,18 @@ def _preprocessor(spec: str, hw: tuple[int, int], size: int) -> Preprocessor:
         return Preprocessor.reference(hw, size)
     if spec == "reference-linear":
         return Preprocessor.reference(hw, size, interpolation="linear")
-    return Preprocessor.from_spec(spec, hw, size)  # a calibration file
+    return Preprocessor.from_spec(spec, hw, size)  # a lens file
 
 
 def _size_error(what: str, hw: tuple[int, int], size: int, spec: str) -> FrameSizeError:
     ref = _wxh(REFERENCE_INPUT_HW)
     if spec == "none":
-        hint = "pass a preprocessing (reference, reference-linear or a calibration .json)"
+        hint = "pass a preprocessing (reference, reference-linear or a lens .json)"
     else:
         hint = (
             f"frames of {ref} (the reference camera) go through the reference preprocessing "
             "automatically; for another camera pass a preprocessing (reference, "
-            "reference-linear or a calibration .json)"
+            "reference-linear or a lens .json)"
         )
     return FrameSizeError(
         f"{what} delivers {_wxh(hw)} frames, but the checkpoint expects {size}x{size} "

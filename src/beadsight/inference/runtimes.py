@@ -56,7 +56,7 @@ from beadsight.inference.backend import (
     BackendError,
     BackendUnavailableError,
 )
-from beadsight.inference.exported import model_fingerprint, write_onnx
+from beadsight.inference.export_format import model_fingerprint, write_onnx
 from beadsight.inference.machine import default_threads, machine_key
 
 log = logging.getLogger(__name__)

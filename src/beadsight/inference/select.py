@@ -30,7 +30,11 @@ import torch
 from beadsight.checkpoint import PressureModel
 from beadsight.errors import ConfigError
 from beadsight.files import atomic_write_json
-from beadsight.inference.exported import PRECISION_KEY, check_exported_matches, model_fingerprint
+from beadsight.inference.export_format import (
+    PRECISION_KEY,
+    check_exported_matches,
+    model_fingerprint,
+)
 from beadsight.inference.machine import default_cache_dir, importable, machine_key
 from beadsight.inference.parity import (
     PARITY_TOLERANCE,
@@ -261,7 +265,7 @@ def create_backend(
     fp32, or the precision an exported file was made for). exported_model: a ``.onnx``
     or OpenVINO ``.xml`` file made by :func:`beadsight.inference.export.export_model`
     from this checkpoint (refused with
-    :class:`~beadsight.inference.exported.ExportError` if it was made from another);
+    :class:`~beadsight.inference.export_format.ExportError` if it was made from another);
     with backend "auto" the format picks the backend. cache_dir: "default" ->
     :func:`~beadsight.inference.machine.default_cache_dir`, None -> no disk cache.
     """

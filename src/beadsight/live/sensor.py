@@ -48,7 +48,8 @@ from typing import Any
 
 import numpy as np
 
-from beadsight.checkpoint import PressureModel, shipped_model_path
+from beadsight.assets import shipped_model_path
+from beadsight.checkpoint import PressureModel
 from beadsight.data.rest import RestReference, load_rest_file
 from beadsight.devices.base import (
     Camera,

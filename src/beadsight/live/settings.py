@@ -35,7 +35,7 @@ class LiveSettings:
     device: str | None = None  # torch device of the torch/compile/cuda backends
     exported_model: str | None = None  # an exported .onnx / OpenVINO .xml of the checkpoint
     threads: int | None = None  # CPU threads of the backend (None: all this process may use)
-    preprocess: str = "auto"  # auto | none | reference | reference-linear | calibration .json
+    preprocess: str = "auto"  # auto | none | reference | reference-linear | lens .json
     source_fps: float | None = None  # simulator rate (None: 30) / rate asked of a camera
     loop: bool = False  # restart a video file at its end
     seed: int = 0  # the simulator's seed

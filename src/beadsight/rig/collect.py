@@ -6,7 +6,7 @@
 :class:`~beadsight.rig.plan.PressPlan`, and writes a raw recording
 (:class:`beadsight.data.recording.RecordingWriter`) incrementally:
 
-* a :class:`~beadsight.rig.recorder.Recorder` thread takes every camera frame and every
+* a :class:`~beadsight.rig.capture.Recorder` thread takes every camera frame and every
   scale reading as they come;
 * the main thread drives the printer through the plan
   (:class:`~beadsight.rig.session.PressSession`), checking the force between steps, and
@@ -38,9 +38,9 @@ from beadsight.config import SensorGeometry
 from beadsight.data.recording import RecordingError, RecordingWriter, read_events, read_session
 from beadsight.devices.base import Camera, DeviceError, Printer, SafetyError, Scale
 from beadsight.devices.envelope import SafetyEnvelope
+from beadsight.rig.capture import Recorder
 from beadsight.rig.config import FORCE_LIMIT_N, SCALE_TIMEOUT_S, DeviceSpec, VirtualRigSpec
 from beadsight.rig.plan import PATTERNS, PressPlan, PressTarget, check_plan, envelope_for
-from beadsight.rig.recorder import Recorder
 from beadsight.rig.session import ForceSafety, PressSession, SessionStop
 
 __all__ = [

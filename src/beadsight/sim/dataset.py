@@ -11,7 +11,7 @@ recording would not hold:
 * **valid** is False for frames outside the span of the scale's log (before its
   first reading or after its last), as for real recordings.
 
-Frames stream to :class:`~beadsight.data.writer.DatasetWriter` in small chunks
+Frames stream to :class:`~beadsight.data.dataset_writer.DatasetWriter` in small chunks
 (memory stays bounded for any number of presses); a frame is written as soon as
 the scale has read past its timestamp.
 """
@@ -29,7 +29,7 @@ import numpy as np
 from beadsight import __version__
 from beadsight.config import REFERENCE_G_TO_N
 from beadsight.data.dataset import open_dataset
-from beadsight.data.writer import DatasetWriter
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.errors import BeadSightError
 from beadsight.sim.config import PRESET_BEAD_COUNTS, SimConfig
 from beadsight.sim.looks import resolve_looks

@@ -35,6 +35,7 @@ from beadsight.checkpoint import (
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import Dataset, DatasetError
 from beadsight.data.splits import SPLITS, dataset_window_ends, split_presses
+from beadsight.data.windows import pixel_stats
 from beadsight.geometry import disk_maps
 from beadsight.train.config import (
     INIT_SHAPE_FIELDS,
@@ -44,7 +45,7 @@ from beadsight.train.config import (
     TrainConfig,
     field_default,
 )
-from beadsight.train.windows import WindowLabels, pixel_stats
+from beadsight.train.windows import WindowLabels
 
 logger = logging.getLogger(__name__)
 

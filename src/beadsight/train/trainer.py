@@ -42,7 +42,7 @@ import torch
 from tqdm import tqdm
 
 from beadsight.config import ConfigError
-from beadsight.data.dataset import open_dataset
+from beadsight.data.dataset import dataset_fingerprint, open_dataset
 from beadsight.data.splits import SPLITS
 from beadsight.errors import BeadSightError
 from beadsight.files import WriteError
@@ -68,7 +68,6 @@ from beadsight.train.windows import (
     WindowLoader,
     batches_per_epoch,
     choose_loader_mode,
-    dataset_fingerprint,
 )
 
 logger = logging.getLogger(__name__)

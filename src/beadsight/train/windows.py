@@ -26,7 +26,6 @@ to all frames of a window and its target, and is deterministic given
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
 import os
@@ -55,8 +54,6 @@ DEVICE_MEMORY_FRACTION = (
 HOST_MEMORY_FRACTION = 0.5  # ... or in RAM (CPU training) when they fill <= this of available RAM
 WORKER_START_METHOD = "spawn"  # host-mode DataLoader workers start as fresh processes
 READ_BLOCK_FRAMES = 256  # frames per HDF5 read while loading frames into memory
-STATS_MAX_FRAMES = 512  # frames sampled for the pixel mean/std
-FINGERPRINT_SAMPLE_FRAMES = 4  # frames hashed (besides all labels) in a dataset fingerprint
 
 
 # --- frames --------------------------------------------------------------------------
@@ -74,42 +71,6 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
     starts, stops = np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()
     return list(zip(starts, stops, strict=True))
-
-
-def pixel_stats(
-    ds: Dataset, frame_mask: np.ndarray, image_size: int, max_frames: int = STATS_MAX_FRAMES
-) -> tuple[list[float], list[float]]:
-    """Per-channel RGB mean and std (0..255 units) of up to ``max_frames`` frames in ``frame_mask``,
-    evenly spaced, measured at the training ``image_size`` (what the network sees)."""
-    idx = np.flatnonzero(frame_mask)
-    if len(idx) == 0:
-        raise ValueError(f"{ds.path}: no frames to measure pixel statistics on")
-    idx = idx[np.unique(np.linspace(0, len(idx) - 1, min(len(idx), max_frames)).astype(np.int64))]
-    total = np.zeros(3)
-    total_sq = np.zeros(3)
-    count = 0
-    for i in range(0, len(idx), 64):
-        block = resize_frames(ds.read_frames_at(idx[i : i + 64]), image_size)
-        pixels = block.reshape(-1, 3).astype(np.float64)
-        total += pixels.sum(0)
-        total_sq += (pixels * pixels).sum(0)
-        count += len(pixels)
-    mean = total / count
-    std = np.sqrt(np.maximum(total_sq / count - mean**2, 0.0))
-    return mean.tolist(), np.maximum(std, 1e-3).tolist()
-
-
-def dataset_fingerprint(ds: Dataset) -> str:
-    """A short hash identifying a dataset's content: shapes, all per-frame labels
-    (force, position, validity) and a few frames. Cheap even for 20 GB files."""
-    h = hashlib.sha256()
-    h.update(repr((tuple(ds.frames.shape), ds.channel_order, ds.geometry.to_json())).encode())
-    for arr in (ds.force_n, ds.position_mm, ds.valid):
-        h.update(np.ascontiguousarray(arr).tobytes())
-    n = len(ds)
-    for i in np.unique(np.linspace(0, n - 1, min(n, FINGERPRINT_SAMPLE_FRAMES)).astype(int)):
-        h.update(np.ascontiguousarray(ds.frames[int(i)]).tobytes())
-    return h.hexdigest()[:16]
 
 
 # --- window sources ----------------------------------------------------------------

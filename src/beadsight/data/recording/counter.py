@@ -4,7 +4,7 @@ The published Arduino sketch (``Scale_Reading.ino``) prints ``grams + 10000 * i`
 ``i`` cycling 0..9, and the reference logger writes that value as is, so a raw force
 log reads 12.5, 10013.1, 20014.0, ... Taken as grams, every reading after the first
 is 1 to 9 kg too high (up to ~900 N). The decoding rule is the one the project's
-scale driver uses (:class:`beadsight.devices.scale_protocol.ReferenceDecoder`).
+scale driver uses (:class:`beadsight.data.recording.scale_protocol.ReferenceDecoder`).
 
 ``mode``: ``"auto"`` decodes when the decoded counter steps through the 0..9 cycle
 (+1 modulo 10 between most consecutive readings; a log without the counter decodes
@@ -22,7 +22,7 @@ import numpy as np
 
 from beadsight.config import REFERENCE_G_TO_N
 from beadsight.data.recording.logs import ForceLog
-from beadsight.devices.scale_protocol import COUNTER_PERIOD, ReferenceDecoder
+from beadsight.data.recording.scale_protocol import COUNTER_PERIOD, ReferenceDecoder
 
 logger = logging.getLogger(__name__)
 

@@ -25,8 +25,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from beadsight.devices.clock import SimClock
-from beadsight.devices.scale_protocol import (
+from beadsight.data.recording.scale_protocol import (
     FIRMWARE_VERSION,
     REFERENCE_COUNTS_PER_GRAM,
     SUPPORTED_RATES_HZ,
@@ -34,6 +33,7 @@ from beadsight.devices.scale_protocol import (
     format_info,
     format_reading,
 )
+from beadsight.devices.clock import SimClock
 from beadsight.devices.virtual.pty_device import PtyDevice
 from beadsight.geometry import newtons_to_grams
 

@@ -1,7 +1,7 @@
 """The files a calibration leaves besides ``model.pt``: ``metrics.json`` (the calibrated
 model's metrics on the test presses, the base model's zero-shot and aligned ones, and the
 calibration record), ``learning_curve.png`` and ``report.html``, a page built by the one
-report builder (:mod:`beadsight.evaluation.report`)."""
+report builder (:mod:`beadsight.report.page`)."""
 
 from __future__ import annotations
 
@@ -10,14 +10,16 @@ from pathlib import Path
 
 import numpy as np
 
-from beadsight.evaluation.evaluate import write_metrics_json
-from beadsight.evaluation.metrics import PAPER_METRICS
-from beadsight.evaluation.plots import (
-    CurvePoint,
-    learning_curve_caption,
-    plot_learning_curve,
+from beadsight.calibrate.config import (
+    ALIGNED_FILE,
+    CURVE_PLOT,
+    METRICS_FILE,
+    MODEL_FILE,
+    REPORT_FILE,
+    TRAIN_FOLDER,
 )
-from beadsight.evaluation.report import (
+from beadsight.evaluation.evaluate import write_metrics_json
+from beadsight.report.page import (
     Figure,
     Report,
     evaluation_figures,
@@ -25,13 +27,11 @@ from beadsight.evaluation.report import (
     evaluation_summary,
     write_report,
 )
-from beadsight.train.calibrate_config import (
-    ALIGNED_FILE,
-    CURVE_PLOT,
-    METRICS_FILE,
-    MODEL_FILE,
-    REPORT_FILE,
-    TRAIN_FOLDER,
+from beadsight.report.paper import PAPER_METRICS
+from beadsight.report.plots import (
+    CurvePoint,
+    learning_curve_caption,
+    plot_learning_curve,
 )
 from beadsight.train.run import METRICS_FILE as TRAIN_METRICS
 

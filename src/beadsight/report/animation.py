@@ -14,9 +14,8 @@ import numpy as np
 
 from beadsight.checkpoint import PressureModel
 from beadsight.errors import BeadSightError
-from beadsight.evaluation.config import ANIMATION_MAX_FRAMES
-from beadsight.evaluation.plots import MAP_AXES, MIN_COLOUR_RANGE_KPA, PRESSURE_CMAP
 from beadsight.files import atomic_write
+from beadsight.report.plots import MAP_AXES, MIN_COLOUR_RANGE_KPA, PRESSURE_CMAP
 
 ANIMATION_MARGIN_FRAMES = 12  # frames shown before contact begins and after it ends
 ANIMATION_PANEL_PX = 192  # side of each panel of the animation
@@ -25,7 +24,7 @@ ANIMATION_COLOUR_PERCENTILE = 99.9  # of the predicted maps: the colour scale's 
 
 
 def animation_frames(
-    model: PressureModel, data: Path, press: int, batch_size: int, count: int = ANIMATION_MAX_FRAMES
+    model: PressureModel, data: Path, press: int, batch_size: int, count: int
 ) -> dict:
     """Consecutive frames around one press's contact: camera RGB, true and predicted maps.
 

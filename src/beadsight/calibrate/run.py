@@ -6,12 +6,12 @@ The stages, within one wall-clock budget (``CalibrateConfig.budget_min``):
    split the presses used (after dropping ``skip`` break-in presses) by press into
    train / early-stopping / test (:data:`CALIBRATION_SPLIT`, seeded);
 2. score the base model as it comes (zero-shot) on the test presses;
-3. zero-press alignment (:func:`beadsight.train.align.align_to_rest`), scored again;
+3. zero-press alignment (:func:`beadsight.calibrate.align.align_to_rest`), scored again;
 4. fine-tune (``layers`` all or decoder) with the trainer under the budget left, from
    the base or the aligned model (the lower MAE on the early-stopping presses),
    validating on the early-stopping presses and keeping the best checkpoint (the
    starting weights included);
-5. optionally a force gain (:func:`beadsight.train.align.fit_force_gain`);
+5. optionally a force gain (:func:`beadsight.calibrate.align.fit_force_gain`);
 6. ``model.pt``, the evaluation of it on the test presses (every frame with a full
    window of real history, across press boundaries), ``metrics.json`` with all three
    stages, the learning curve and ``report.html``.
@@ -28,18 +28,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from beadsight.checkpoint import (
-    BASE_MODEL,
-    PressureModel,
-    load_checkpoint,
-    shipped_model_path,
-)
-from beadsight.config import ConfigError, ContactThresholds
-from beadsight.data.dataset import DatasetError, open_dataset
-from beadsight.data.splits import dataset_window_ends
-from beadsight.evaluation.evaluate import evaluate
-from beadsight.train.align import align_to_rest, fit_force_gain, with_meta
-from beadsight.train.calibrate_config import (
+from beadsight.assets import BASE_MODEL, shipped_model_path
+from beadsight.calibrate.align import align_to_rest, fit_force_gain, with_meta
+from beadsight.calibrate.config import (
     ALIGNED_FILE,
     CALIBRATION_SPLIT,
     METRICS_FILE,
@@ -50,10 +41,14 @@ from beadsight.train.calibrate_config import (
     TRAIN_FOLDER,
     CalibrateConfig,
 )
+from beadsight.checkpoint import PressureModel, load_checkpoint
+from beadsight.config import ConfigError, ContactThresholds
+from beadsight.data.dataset import DatasetError, dataset_fingerprint, open_dataset
+from beadsight.data.splits import dataset_window_ends
+from beadsight.evaluation.evaluate import evaluate
 from beadsight.train.config import SIZE_MULTIPLE, TrainConfig
 from beadsight.train.prepare import split_used_presses
 from beadsight.train.run import BEST_CHECKPOINT
-from beadsight.train.windows import dataset_fingerprint
 
 logger = logging.getLogger(__name__)
 
@@ -228,7 +223,7 @@ def calibrate(config: CalibrateConfig) -> dict:
     }
     model = finished_model(model, config, data, base_path, record)
     model.save(out / MODEL_FILE)
-    from beadsight.train.calibrate_report import write_outputs
+    from beadsight.calibrate.report import write_outputs
 
     final = score(out / MODEL_FILE, config, split, out_dir=out, report=False)
     record["seconds"] = round(time.monotonic() - t0, 1)

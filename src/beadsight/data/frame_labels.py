@@ -20,16 +20,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from beadsight.data.process_config import FORCE_INTERPOLATIONS, ProcessConfig
 from beadsight.data.recording import Recording
 
-if TYPE_CHECKING:
-    from beadsight.data.process import ProcessConfig
-
-FORCE_INTERPOLATIONS = ("pchip", "cubic", "linear")
 # Reasons a frame is invalid (one per frame; the first that applies, in this order).
 REASONS = (
     "before_force_log",

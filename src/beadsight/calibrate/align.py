@@ -23,9 +23,8 @@ import numpy as np
 from beadsight.checkpoint import PressureModel
 from beadsight.data.dataset import Dataset, DatasetError, open_dataset
 from beadsight.data.splits import dataset_window_ends
-from beadsight.data.windows import WindowReader
+from beadsight.data.windows import WindowReader, pixel_stats
 from beadsight.geometry import total_force_n
-from beadsight.train.windows import pixel_stats
 
 logger = logging.getLogger(__name__)
 

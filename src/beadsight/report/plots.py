@@ -170,7 +170,7 @@ def plot_force_traces(traces: Sequence[ForceTrace], path: str | Path) -> Path:
 
 
 # --- captions -----------------------------------------------------------------------
-# What each figure shows and how to read it, for the reports (beadsight.evaluation.report).
+# What each figure shows and how to read it, for the reports (beadsight.report.page).
 MAP_AXES = (
     "Maps are drawn as the camera sees the sensor: x (mm, printer X) grows to the left, "
     "y (mm, printer Y) grows upwards, 0 at the sensor centre."

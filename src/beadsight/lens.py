@@ -1,11 +1,9 @@
-"""Fisheye calibration: OpenCV's fisheye model (K, D) fitted to checkerboard views
-(:func:`calibrate_fisheye`), stored as JSON (:class:`FisheyeCalibration`,
-:func:`load_calibration`), and the :class:`~beadsight.preprocess.Preprocessor` that
-undistorts with it (:func:`calibrated_preprocessor`): a perspective view with the
-reference's 120 degree field of view, cropped like the reference.
+"""The camera's lens: OpenCV's fisheye model (K, D) fitted to checkerboard views
+(:func:`fit_fisheye_lens`), its JSON file (:class:`FisheyeLens`, :func:`load_lens`) and
+its undistortion maps (:func:`undistort_maps`).
 
-``beadsight process --preprocess calib.json`` and ``beadsight predict/live
---preprocess calib.json`` use such a file instead of the reference unwarp.
+``--preprocess lens.json`` (``process``, ``predict``, ``live``) undistorts with such a file
+(:meth:`beadsight.preprocess.Preprocessor.from_fisheye_lens`) instead of the reference unwarp.
 """
 
 from __future__ import annotations
@@ -22,30 +20,19 @@ import numpy as np
 
 from beadsight.errors import BeadSightError, ConfigError
 from beadsight.files import atomic_write_json, read_json_object
-from beadsight.preprocess import (
-    REFERENCE_OUTPUT_SIZE,
-    REFERENCE_PFOV_DEG,
-    REFERENCE_SQUARE_PX,
-    RESIZES,
-    FrameSizeError,
-    Preprocessor,
-    check_choice,
-    reference_crop,
-    sample_count,
-)
 
 logger = logging.getLogger(__name__)
 
-CALIBRATION_FORMAT = "beadsight-fisheye-calibration"
-MIN_CALIBRATION_VIEWS = 3  # cv2.fisheye.calibrate needs several board poses
+LENS_FORMAT = "beadsight-fisheye-calibration"  # the files' tag, kept so earlier files load
+MIN_BOARD_VIEWS = 3  # cv2.fisheye.calibrate needs several board poses
 
 
-class CalibrationError(BeadSightError, ValueError):
-    """Fisheye calibration failed or a calibration file is malformed; the message names it."""
+class LensError(BeadSightError, ValueError):
+    """Fitting the lens failed or a lens file is malformed; the message names it."""
 
 
 @dataclass(frozen=True)
-class FisheyeCalibration:
+class FisheyeLens:
     """OpenCV fisheye model of a camera.
 
     K: (3, 3) float64 camera matrix (pixels); D: (4,) float64 distortion k1..k4;
@@ -64,11 +51,11 @@ class FisheyeCalibration:
         k = np.asarray(self.K, dtype=np.float64)
         d = np.asarray(self.D, dtype=np.float64).reshape(-1)
         if k.shape != (3, 3):
-            raise CalibrationError(f"K must be 3x3, got shape {k.shape}")
+            raise LensError(f"K must be 3x3, got shape {k.shape}")
         if d.shape != (4,):
-            raise CalibrationError(f"D must have 4 coefficients (k1..k4), got {d.size}")
+            raise LensError(f"D must have 4 coefficients (k1..k4), got {d.size}")
         if not (np.isfinite(k).all() and np.isfinite(d).all()):
-            raise CalibrationError("K and D must be finite")
+            raise LensError("K and D must be finite")
         object.__setattr__(self, "K", k)
         object.__setattr__(self, "D", d)
         object.__setattr__(self, "image_hw", (int(self.image_hw[0]), int(self.image_hw[1])))
@@ -76,7 +63,7 @@ class FisheyeCalibration:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "format": CALIBRATION_FORMAT,
+            "format": LENS_FORMAT,
             "model": "opencv-fisheye",
             "K": self.K.tolist(),
             "D": self.D.tolist(),
@@ -88,14 +75,14 @@ class FisheyeCalibration:
         }
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any], source: str = "calibration") -> FisheyeCalibration:
-        if data.get("format") != CALIBRATION_FORMAT:
-            raise CalibrationError(
-                f"{source}: field 'format' is {data.get('format')!r}, expected {CALIBRATION_FORMAT!r}"
+    def from_dict(cls, data: dict[str, Any], source: str = "lens") -> FisheyeLens:
+        if data.get("format") != LENS_FORMAT:
+            raise LensError(
+                f"{source}: field 'format' is {data.get('format')!r}, expected {LENS_FORMAT!r}"
             )
         missing = [k for k in ("K", "D", "image_hw") if k not in data]
         if missing:
-            raise CalibrationError(f"{source}: missing field(s) {missing}")
+            raise LensError(f"{source}: missing field(s) {missing}")
         try:
             return cls(
                 K=np.asarray(data["K"], dtype=np.float64),
@@ -106,20 +93,20 @@ class FisheyeCalibration:
                 pattern=tuple(data.get("pattern", (9, 6))),
                 square_mm=float(data.get("square_mm", float("nan"))),
             )
-        except CalibrationError as e:
-            raise CalibrationError(f"{source}: {e}") from None
+        except LensError as e:
+            raise LensError(f"{source}: {e}") from None
         except (TypeError, ValueError) as e:
-            raise CalibrationError(f"{source}: malformed calibration ({e})") from None
+            raise LensError(f"{source}: malformed lens file ({e})") from None
 
     def save(self, path: str | Path) -> Path:
         """Write JSON atomically (a crash or full disk leaves any previous file)."""
         return atomic_write_json(path, self.to_dict())
 
 
-def load_calibration(path: str | Path) -> FisheyeCalibration:
-    """Read a calibration JSON written by :meth:`FisheyeCalibration.save`."""
-    data = read_json_object(path, CalibrationError, "a calibration JSON object")
-    return FisheyeCalibration.from_dict(data, source=str(path))
+def load_lens(path: str | Path) -> FisheyeLens:
+    """Read a lens JSON file written by :meth:`FisheyeLens.save`."""
+    data = read_json_object(path, LensError, "a lens JSON object")
+    return FisheyeLens.from_dict(data, source=str(path))
 
 
 def board_points(pattern: tuple[int, int], square_mm: float) -> np.ndarray:
@@ -147,16 +134,16 @@ def find_board(image: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | None
 
 
 def _fisheye_flag(name: str) -> int:
-    """A fisheye calibration flag (``cv2.fisheye.X`` in OpenCV 4, ``cv2.X`` in OpenCV 5)."""
+    """A ``cv2.fisheye.calibrate`` flag (``cv2.fisheye.X`` in OpenCV 4, ``cv2.X`` in OpenCV 5)."""
     value = getattr(cv2.fisheye, name, None)
     return int(value if value is not None else getattr(cv2, name))
 
 
-def calibrate_fisheye(
+def fit_fisheye_lens(
     checkerboard_images: Iterable[np.ndarray | str | Path],
     pattern: tuple[int, int] = (9, 6),
     square_mm: float = 25.0,
-) -> FisheyeCalibration:
+) -> FisheyeLens:
     """Fit OpenCV's fisheye model to checkerboard views.
 
     checkerboard_images: (H, W, 3) uint8 BGR or (H, W) uint8 images, or image paths,
@@ -171,12 +158,12 @@ def calibrate_fisheye(
         name = str(item) if isinstance(item, (str, Path)) else f"image {k}"
         image = cv2.imread(str(item), cv2.IMREAD_COLOR) if isinstance(item, (str, Path)) else item
         if image is None:
-            raise CalibrationError(f"{name}: cannot read image")
+            raise LensError(f"{name}: cannot read image")
         hw = tuple(image.shape[:2])
         if image_hw is None:
             image_hw = hw
         elif hw != image_hw:
-            raise CalibrationError(
+            raise LensError(
                 f"{name} is {hw[1]}x{hw[0]} but earlier views are {image_hw[1]}x{image_hw[0]}"
             )
         corners = find_board(image, pattern)
@@ -193,10 +180,10 @@ def calibrate_fisheye(
             len(skipped),
             ", ".join(skipped[:10]),
         )
-    if len(image_points) < MIN_CALIBRATION_VIEWS:
-        raise CalibrationError(
+    if len(image_points) < MIN_BOARD_VIEWS:
+        raise LensError(
             f"found a {pattern[0]}x{pattern[1]} checkerboard in {len(image_points)} view(s); "
-            f"fisheye calibration needs at least {MIN_CALIBRATION_VIEWS}"
+            f"fitting the fisheye lens needs at least {MIN_BOARD_VIEWS}"
         )
     assert image_hw is not None
     flags = _fisheye_flag("CALIB_RECOMPUTE_EXTRINSIC") | _fisheye_flag("CALIB_FIX_SKEW")
@@ -212,8 +199,8 @@ def calibrate_fisheye(
             criteria=criteria,
         )
     except cv2.error as e:
-        raise CalibrationError(f"cv2.fisheye.calibrate failed: {e}") from None
-    return FisheyeCalibration(
+        raise LensError(f"cv2.fisheye.calibrate failed: {e}") from None
+    return FisheyeLens(
         K=k,
         D=d,
         image_hw=image_hw,
@@ -224,38 +211,24 @@ def calibrate_fisheye(
     )
 
 
-def calibrated_preprocessor(
-    calibration: FisheyeCalibration,
-    output_size: int = REFERENCE_OUTPUT_SIZE,
-    *,
-    input_hw: tuple[int, int] | None = None,
-    pfov_deg: float = REFERENCE_PFOV_DEG,
-    undistorted_px: int = REFERENCE_SQUARE_PX,
-    crop: tuple[int, int, int] | None = None,
-    resize: str = "area",
-    channel_order: str = "RGB",
-) -> Preprocessor:
-    """Undistort with a calibrated fisheye model, then crop and resize.
+def undistort_maps(
+    lens: FisheyeLens,
+    crop: tuple[int, int, int],
+    samples: int,
+    pfov_deg: float,
+    undistorted_px: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(map_cols, map_rows): (samples, samples) float32 source pixel of each output sample.
 
-    The undistorted view is a virtual perspective camera looking along the
-    optical axis: a ``undistorted_px`` square with ``pfov_deg`` field of view
-    (focal ``undistorted_px / (2 tan(pfov/2))``, principal point at its centre),
-    like the reference's output. ``crop = (row0, col0, size)`` in that square
-    (default: the reference crop scaled to ``undistorted_px``). Only the cropped
-    part is mapped (``cv2.fisheye.initUndistortRectifyMap`` with a shifted,
-    scaled camera matrix), bilinearly.
+    The undistorted view is a virtual perspective camera looking along the optical axis: a
+    ``undistorted_px`` square with ``pfov_deg`` field of view (focal
+    ``undistorted_px / (2 tan(pfov/2))``, principal point at its centre). Only the part
+    ``crop = (row0, col0, size)`` of that square is mapped, on a ``samples``-square grid
+    (``cv2.fisheye.initUndistortRectifyMap`` with a shifted, scaled camera matrix).
     """
-    input_hw = tuple(input_hw) if input_hw is not None else calibration.image_hw
-    if tuple(input_hw) != tuple(calibration.image_hw):
-        raise FrameSizeError(
-            f"calibration was made for {calibration.image_hw[1]}x{calibration.image_hw[0]} "
-            f"frames but the preprocessor is for {input_hw[1]}x{input_hw[0]} frames"
-        )
     if not 0 < pfov_deg < 180:
         raise ConfigError(f"pfov_deg must be in (0, 180), got {pfov_deg}")
-    check_choice("resize", resize, tuple(RESIZES))
-    r0, c0, n = crop if crop is not None else reference_crop(undistorted_px)
-    samples = sample_count(resize, int(n), output_size)
+    r0, c0, n = crop
     focal = undistorted_px / (2 * math.tan(math.radians(pfov_deg) / 2))
     centre = (undistorted_px - 1) / 2
     # Grid point k of the crop sits at undistorted pixel (k + 0.5) * n / samples - 0.5 + r0.
@@ -268,23 +241,6 @@ def calibrated_preprocessor(
         ],
         dtype=np.float64,
     )
-    map_x, map_y = cv2.fisheye.initUndistortRectifyMap(
-        calibration.K, calibration.D, np.eye(3), new_k, (samples, samples), cv2.CV_32FC1
-    )
-    return Preprocessor(
-        input_hw=input_hw,
-        output_size=output_size,
-        map_rows=map_y,
-        map_cols=map_x,
-        interpolation="linear",
-        resize=resize,
-        channel_order=channel_order,
-        description={
-            "kind": "fisheye-calibration",
-            "K": calibration.K.tolist(),
-            "D": calibration.D.tolist(),
-            "pfov_deg": pfov_deg,
-            "undistorted_px": undistorted_px,
-            "crop": [int(r0), int(c0), int(n)],
-        },
+    return cv2.fisheye.initUndistortRectifyMap(
+        lens.K, lens.D, np.eye(3), new_k, (samples, samples), cv2.CV_32FC1
     )

@@ -11,18 +11,18 @@ import pytest
 from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight import load_checkpoint
+from beadsight.calibrate.align import fit_force_gain
+from beadsight.calibrate.config import CalibrateConfig
+from beadsight.calibrate.run import calibrate
 from beadsight.cli import main
 from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import DatasetError, open_dataset
+from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.data.reference_file import export_reference
 from beadsight.data.rest import average_rest, rest_ends, with_rest
 from beadsight.data.splits import dataset_window_ends
-from beadsight.data.writer import DatasetWriter
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.geometry import total_force_n
-from beadsight.train.align import fit_force_gain
-from beadsight.train.calibrate import calibrate
-from beadsight.train.calibrate_config import CalibrateConfig
 
 QUICK = ["--budget-min", "0.1", "--no-progress"]
 

@@ -8,8 +8,8 @@ import pytest
 from helpers.browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
 from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
-from beadsight.train.calibrate import calibrate
-from beadsight.train.calibrate_config import CalibrateConfig
+from beadsight.calibrate.config import CalibrateConfig
+from beadsight.calibrate.run import calibrate
 
 pytestmark = [
     pytest.mark.browser,

@@ -1,4 +1,4 @@
-"""The collection recorder: every camera frame and scale reading into the raw recording.
+"""The collection's capture thread: every camera frame and scale reading into the raw recording.
 
 A :class:`Recorder` runs on its own thread (a :class:`~beadsight.devices.reader.ReaderThread`)
 while the main thread drives the printer: it takes each frame in capture order with

@@ -6,7 +6,7 @@
 * a title and a one-paragraph summary (what was evaluated, on what data, with which model);
 * the metrics as an HTML table beside the paper's figures and the baselines, every value
   with a paper counterpart marked better or worse than the paper
-  (:func:`beadsight.evaluation.metrics.compare_with_paper`);
+  (:func:`beadsight.report.paper.compare_with_paper`);
 * notes, then the figures (animation, plots), each with a caption saying what it shows and
   how to read it;
 * an optional model card, Markdown rendered by markdown-it-py, after the results and folded;
@@ -15,7 +15,7 @@
 Every text is escaped; the model card is rendered with raw HTML disabled and only safe link
 schemes, so a card cannot inject markup or script. Images and raw files stay files beside
 the page, linked by relative paths; the page loads nothing else (no server, no network, no
-external CSS, JS or fonts). The page layout and style are in ``report.html`` beside this
+external CSS, JS or fonts). The page layout and style are in ``page.html`` beside this
 module.
 
 :func:`evaluation_report` builds the :class:`Report` of a metrics dict returned by
@@ -35,21 +35,16 @@ from urllib.parse import quote
 
 from beadsight import __version__
 from beadsight.config import SensorGeometry
-from beadsight.evaluation.metrics import (
-    PAPER_METRICS,
-    REGION_GRID,
-    TABLE_ROWS,
-    compare_with_paper,
-)
-from beadsight.evaluation.plots import (
+from beadsight.files import atomic_write_text
+from beadsight.report.paper import PAPER_METRICS, REGION_GRID, TABLE_ROWS, compare_with_paper
+from beadsight.report.plots import (
     examples_caption,
     force_traces_caption,
     region_error_caption,
 )
-from beadsight.files import atomic_write_text
 
 REPORT_FILE = "index.html"
-TEMPLATE = "report.html"  # package file beside this module
+TEMPLATE = "page.html"  # package file beside this module
 MODEL_CARD_SUFFIX = ".md"  # a checkpoint's model card: the Markdown file of the same name
 CARD_HEADING_OFFSET = 2  # a card's "#" becomes <h3>, under the page's <h2>
 
@@ -222,7 +217,7 @@ def render_report(report: Report, folder: Path | None = None) -> str:
     if report.files:
         parts += ['<h2 id="files">Files</h2>', _files(report.files, folder)]
     when = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
-    template = importlib.resources.files("beadsight.evaluation").joinpath(TEMPLATE).read_text()
+    template = importlib.resources.files("beadsight.report").joinpath(TEMPLATE).read_text()
     return Template(template).substitute(
         title=_e(report.title),
         generator=_e(f"beadsight {__version__}"),
