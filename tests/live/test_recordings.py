@@ -24,11 +24,10 @@ from helpers.live import (
 )
 
 from beadsight.cli import main
-from beadsight.files import WriteError
+from beadsight.files import OutputExistsError, WriteError
 from beadsight.geometry import total_force_n
 from beadsight.live.outputs.viewer.server import ViewerServer
 from beadsight.live.recording.readings import ReadingsWriter, open_readings
-from beadsight.live.recording.recorder import OutputExistsError
 from beadsight.live.sensor import LiveSensor
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads

@@ -36,8 +36,8 @@ from tqdm import tqdm
 
 from beadsight import __version__
 from beadsight.errors import BeadSightError, ConfigError
+from beadsight.live.recording.partial import PartialWriter, ReadingLike
 from beadsight.live.recording.readings import open_readings
-from beadsight.live.recording.recorder import PartialWriter, ReadingLike
 from beadsight.live.ros import messages as msg
 from beadsight.live.ros.messages import (
     image_message,

@@ -43,7 +43,7 @@ from beadsight.config import SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.files import Closes
 from beadsight.h5safe import find_dataset, open_h5
-from beadsight.live.recording.recorder import PartialWriter, ReadingLike
+from beadsight.live.recording.partial import PartialWriter, ReadingLike
 
 logger = logging.getLogger(__name__)
 

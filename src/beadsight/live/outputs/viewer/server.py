@@ -61,7 +61,7 @@ from beadsight.live.outputs.viewer.events import (
     Snapshot,
 )
 from beadsight.live.outputs.viewer.http import LOCAL_HOSTS, REQUEST_TIMEOUT_S, ViewerHTTPServer
-from beadsight.live.recording.recorder import unique_recording_path
+from beadsight.live.recording.partial import unique_recording_path
 from beadsight.live.ros.messages import health_report
 
 logger = logging.getLogger(__name__)
