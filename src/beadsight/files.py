@@ -98,6 +98,29 @@ def refuse_existing(path: str | Path, overwrite: bool = False, flag: str = "--ov
     return path
 
 
+def prepare_output_folder(
+    path: str | Path, overwrite: bool = False, flag: str = "--overwrite"
+) -> Path:
+    """Create output folder ``path``; the one rule for commands that write a folder.
+
+    A file of that name is refused (it is not a folder), and so is a folder that already
+    holds anything unless ``overwrite``: the command would replace files it did not write.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputExistsError(f"{path}: is a file; expected a folder to write into")
+    if path.is_dir() and any(path.iterdir()) and not overwrite:
+        raise OutputExistsError(
+            f"{path}: folder exists and is not empty; choose another output folder, or pass "
+            f"{flag} to replace its files"
+        )
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise write_error(path, e) from e
+    return path
+
+
 def describe_os_error(e: OSError) -> str:
     """A short cause for a failed write: 'disk full', 'file size limit reached', ..."""
     if e.errno in (errno.ENOSPC, errno.EDQUOT):

@@ -25,6 +25,9 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
         choices=config.SPLIT_CHOICES,
     )
     p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument(
+        "--overwrite", action="store_true", help="write into a --out folder that is not empty"
+    )
     _batch_and_device(p, config.EVALUATE_BATCH_SIZE)
     p.add_argument(
         "--max-frames",
@@ -54,6 +57,7 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, type=Path, help="checkpoint file (.pt)")
     p.add_argument("--input", required=True, type=Path, help="dataset (HDF5) or video file")
     p.add_argument("--out", required=True, type=Path, help="output file (.h5)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     add_option(
         p,
         "--preprocess",
@@ -89,7 +93,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     """
     from beadsight.evaluation.evaluate import evaluate
     from beadsight.evaluation.metrics import format_metrics_table
+    from beadsight.files import prepare_output_folder
 
+    prepare_output_folder(args.out, args.overwrite)
     metrics = evaluate(
         args.checkpoint,
         args.data,
@@ -137,6 +143,7 @@ def run_predict(args: argparse.Namespace) -> int:
         device=args.device,
         progress=not args.no_progress,
         rest=args.rest,
+        overwrite=args.overwrite,
     )
     print(summarize_predictions(out))
     return 0

@@ -18,6 +18,7 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, help="beadsight or reference checkpoint")
     p.add_argument("--format", required=True, choices=EXPORT_FORMATS)
     p.add_argument("--out", required=True, help=".onnx file, or OpenVINO .xml")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     add_option(p, "--precision", EXPORT_PRECISIONS[0], "model precision", choices=EXPORT_PRECISIONS)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
 
@@ -87,7 +88,9 @@ def _export(args: argparse.Namespace) -> int:
     """
     from beadsight.inference.export import export_model
 
-    report = export_model(args.checkpoint, args.format, args.out, args.precision)
+    report = export_model(
+        args.checkpoint, args.format, args.out, args.precision, overwrite=args.overwrite
+    )
     if args.json:
         print(json.dumps(report.to_dict()))
     else:
