@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import subprocess
 import sys
 import time
@@ -291,3 +292,28 @@ def test_record_presses_in_the_same_second_make_new_files(model, tmp_path):
     with open_readings(first) as a, open_readings(second) as b:
         assert len(a) >= 3 and len(b) >= 3
         assert b.timestamp_s[0] > a.timestamp_s[-1]  # two recordings, one after the other
+
+
+def test_cli_live_on_a_disk_full_at_start_leaves_no_partial(model, presses, full_disk, capsys):
+    """Issue 26 item 6: nothing recorded, so no (0-byte) ``.partial`` is left to refuse the
+    next run."""
+    from helpers.live import live_argv, write_video
+
+    frames, _ = presses
+    video = write_video(full_disk.parent / "v.avi", frames[:30], fps=60)
+    checkpoint = model.save(full_disk.parent / "tiny.pt")
+    filler = full_disk / "filler"
+    fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
+    try:  # fill the disk up to the last byte
+        while os.write(fd, b"\0" * 4096):
+            pass
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+    out = full_disk / "rec.h5"
+    more = ["--no-viewer", "--no-stream", "--output", str(out), "--frames", "5", "--loop"]
+    assert main(live_argv(checkpoint, video, *more)) == 1
+    err = capsys.readouterr().err
+    assert f"could not write {out}: disk full; nothing was recorded" in err
+    assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
