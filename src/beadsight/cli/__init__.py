@@ -23,6 +23,7 @@ import traceback
 from collections.abc import Callable, Iterable, Sequence
 
 from beadsight import __version__
+from beadsight.cli.options import check_numbers
 
 AREAS = (
     "data",
@@ -112,6 +113,7 @@ def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentPars
         importlib.import_module(f"beadsight.cli.{area}").register(registry)
     for name in registry.names if commands is None else commands:
         registry.build(name)
+    check_numbers(parser)
     return parser
 
 
