@@ -317,3 +317,27 @@ def test_cli_live_on_a_disk_full_at_start_leaves_no_partial(model, presses, full
     err = capsys.readouterr().err
     assert f"could not write {out}: disk full; nothing was recorded" in err
     assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
+
+
+def test_to_mcap_with_a_nan_timestamp_is_a_named_error_and_leaves_nothing(
+    model, presses, tmp_path, capsys
+):
+    """Issue 26: a readings file with a NaN timestamp: one line naming the file and field,
+    exit 1, and no ``.partial`` of the MCAP file."""
+    pytest.importorskip("mcap_ros2")
+    import h5py
+
+    frames, _ = presses
+    path = tmp_path / "rec.h5"
+    sensor = LiveSensor(model, ScriptedSource(frames[:40]), **BACKEND).open()
+    sensor.start_recording(path)
+    with sensor:
+        assert sensor.wait(60)
+        sensor.stop_recording()
+    with h5py.File(path, "r+") as f:
+        f["timestamp_s"][3] = np.nan
+    out = tmp_path / "rec.mcap"
+    assert main(["to-mcap", str(path), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert f"{path}: dataset 'timestamp_s' has 1 NaN/inf value(s) (first at reading 3)" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.h5"]

@@ -16,7 +16,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -284,15 +285,46 @@ def load_resume(path: Path, config: TrainConfig, image_size: int, fingerprint: s
                 f"{path}: field '{name}' is {a!r} in the checkpoint but {b!r} in this "
                 "configuration; a resumed run keeps its settings (start a new --out to change it)"
             )
-    split = {name: np.asarray(training["split"][name], dtype=np.int64) for name in SPLITS}
-    return Resumed(
-        model=model,
-        split=split,
-        state=state,
-        step=int(state.get("step", training.get("step", 0))),
-        elapsed_s=float(state.get("elapsed_s", 0.0)),
-        best=dict(training.get("best_val") or {}),
-    )
+    with tampered_state_errors(path):
+        split = {name: np.asarray(training["split"][name], dtype=np.int64) for name in SPLITS}
+        return Resumed(
+            model=model,
+            split=split,
+            state=state,
+            step=int(state.get("step", training.get("step", 0))),
+            elapsed_s=float(state.get("elapsed_s", 0.0)),
+            best=dict(training.get("best_val") or {}),
+        )
+
+
+def check_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
+    """ValueError unless every tensor of the loaded optimizer state (Adam's moments) has
+    its parameter's shape: a restored state of another model fails only at the next step."""
+    for group in optimizer.param_groups:
+        for param in group["params"]:
+            for name, value in optimizer.state.get(param, {}).items():
+                if torch.is_tensor(value) and value.ndim and value.shape != param.shape:
+                    raise ValueError(
+                        f"optimizer state {name!r} has shape {tuple(value.shape)}, expected "
+                        f"{tuple(param.shape)}"
+                    )
+
+
+@contextmanager
+def tampered_state_errors(path: Path) -> Iterator[None]:
+    """Any error reading or applying ``path``'s training state (a damaged or tampered
+    last.pt: missing keys, wrong types, optimizer or RNG states of another shape) becomes
+    one CheckpointError naming the file."""
+    try:
+        yield
+    except (KeyError, TypeError, ValueError, IndexError, RuntimeError, AttributeError) as e:
+        if isinstance(e, CheckpointError):
+            raise
+        raise CheckpointError(
+            f"{path}: the training state cannot be resumed ({type(e).__name__}: "
+            f"{str(e).splitlines()[0] if str(e) else 'malformed'}); the file is damaged or "
+            "was not written by this run: start a new --out"
+        ) from None
 
 
 def _plain(value: Any) -> Any:

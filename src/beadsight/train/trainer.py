@@ -51,12 +51,14 @@ from beadsight.train.config import TrainConfig
 from beadsight.train.distributed import Distributed, resolve_device
 from beadsight.train.prepare import (
     check_image_size,
+    check_optimizer_state,
     init_model,
     load_resume,
     new_model,
     prepare_data,
     split_record,
     split_used_presses,
+    tampered_state_errors,
     trainable_parameters,
 )
 from beadsight.train.run import CONFIG_FILE, SPLIT_FILE, RunFolder
@@ -133,10 +135,12 @@ class Trainer:
         self.scaler = torch.amp.GradScaler("cuda") if config.precision == "fp16" else None
         self.autocast_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(config.precision)
         if self.resume_state is not None:
-            self.optimizer.load_state_dict(self.resume_state["optimizer"])
-            if self.scaler is not None and self.resume_state.get("scaler"):
-                self.scaler.load_state_dict(self.resume_state["scaler"])
-            self._restore_rng(self.resume_state)
+            with tampered_state_errors(self.run.last):
+                self.optimizer.load_state_dict(self.resume_state["optimizer"])
+                check_optimizer_state(self.optimizer)
+                if self.scaler is not None and self.resume_state.get("scaler"):
+                    self.scaler.load_state_dict(self.resume_state["scaler"])
+                self._restore_rng(self.resume_state)
         else:
             torch.manual_seed(config.seed + self.dist.rank)  # noise/dropout differ by rank
         self.ddp = net
