@@ -29,7 +29,13 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
     from beadsight.data.reference_file import EXPORT_FORMATS
 
     p.add_argument("data", help="dataset .h5 (this project's format)")
-    p.add_argument("--format", choices=EXPORT_FORMATS, default="reference")
+    p.add_argument(
+        "--format",
+        choices=EXPORT_FORMATS,
+        default="reference",
+        help="reference: the original BeadSight code's processed HDF5 layout (BGR frames, "
+        "grams, float32 columns; docs/data_format.md) (default: reference)",
+    )
     p.add_argument("--out", required=True, help="output .h5 file")
     p.add_argument(
         "--compression-level", type=int, default=0, help="gzip level of the images, 0 = none"

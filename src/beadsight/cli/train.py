@@ -193,7 +193,6 @@ def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
         for name, help, *extra in CALIBRATE_FLAGS
     ]
     add_fields(p, CalibrateConfig, rows)
-    p.add_argument("--no-gain", dest="gain", action="store_false", help="no force gain")
 
 
 def _calibrate(args: argparse.Namespace) -> int:
