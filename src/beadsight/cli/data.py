@@ -82,10 +82,11 @@ def _info(args: argparse.Namespace) -> int:
         summary = checkpoint_summary(path)
     else:  # a dataset, or a missing path, directory or device: open_dataset names it
         summary = dataset_summary(args.file)
-    if summary.get("warning"):
-        print(f"warning: {summary['warning']}", file=sys.stderr)
+    warning = summary.pop("warning", None)  # None: all is well, nothing to say
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     if args.json:
-        print(json.dumps(summary))
+        print(json.dumps({**summary, **({"warning": warning} if warning else {})}))
         return 0
     for key, value in summary.items():
         print(f"{key:>22}: {value}")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -160,12 +161,19 @@ def output_scale_kpa(contact_force_n: np.ndarray, geometry: SensorGeometry) -> f
     return float(disk.mean(dtype=np.float64))
 
 
+def run_relative(path: str | Path, config: TrainConfig) -> str:
+    """``path`` as the run folder ``config.out`` reaches it (``../data/train.h5``): what a
+    checkpoint records, so that its model card names no folder of the training machine."""
+    return os.path.relpath(Path(path).resolve(), Path(config.out).resolve())
+
+
 def provenance(config: TrainConfig, ds: Dataset) -> dict[str, Any]:
-    """Where a trained model comes from (stored in its checkpoints)."""
+    """Where a trained model comes from (stored in its checkpoints); paths as
+    :func:`run_relative` names them."""
     record = {
         "source": "beadsight train",
         "beadsight_version": __version__,
-        "dataset": str(Path(config.data).resolve()),
+        "dataset": run_relative(config.data, config),
         "dataset_source": ds.provenance.get("source"),
         "fps": float(ds.fps),  # camera rate: the predictor's gap detection uses it
         "created_unix": time.time(),
@@ -231,7 +239,7 @@ def init_model(
         geometry=ds.geometry.with_image_size(data.image_size),
         provenance={
             **provenance(config, ds),
-            "init": {"path": str(Path(path).resolve()), "provenance": source.meta.provenance},
+            "init": {"path": run_relative(path, config), "provenance": source.meta.provenance},
         },
         training={},
     )
@@ -297,9 +305,11 @@ def load_resume(path: Path, config: TrainConfig, image_size: int, fingerprint: s
         )
 
 
-def check_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
-    """ValueError unless every tensor of the loaded optimizer state (Adam's moments) has
-    its parameter's shape: a restored state of another model fails only at the next step."""
+def load_optimizer_state(optimizer: torch.optim.Optimizer, state: Any) -> None:
+    """``optimizer.load_state_dict(state)``; ValueError unless every tensor of the loaded
+    state (Adam's moments) has its parameter's shape: a state of another model would fail
+    only at the next step."""
+    optimizer.load_state_dict(state)
     for group in optimizer.param_groups:
         for param in group["params"]:
             for name, value in optimizer.state.get(param, {}).items():

@@ -51,11 +51,12 @@ from beadsight.train.config import TrainConfig
 from beadsight.train.distributed import Distributed, resolve_device
 from beadsight.train.prepare import (
     check_image_size,
-    check_optimizer_state,
     init_model,
+    load_optimizer_state,
     load_resume,
     new_model,
     prepare_data,
+    run_relative,
     split_record,
     split_used_presses,
     tampered_state_errors,
@@ -136,8 +137,7 @@ class Trainer:
         self.autocast_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(config.precision)
         if self.resume_state is not None:
             with tampered_state_errors(self.run.last):
-                self.optimizer.load_state_dict(self.resume_state["optimizer"])
-                check_optimizer_state(self.optimizer)
+                load_optimizer_state(self.optimizer, self.resume_state["optimizer"])
                 if self.scaler is not None and self.resume_state.get("scaler"):
                     self.scaler.load_state_dict(self.resume_state["scaler"])
                 self._restore_rng(self.resume_state)
@@ -235,7 +235,7 @@ class Trainer:
     def _training_meta(self) -> dict[str, Any]:
         data = self.data
         return {
-            "dataset_path": str(Path(self.config.data).resolve()),
+            "dataset_path": run_relative(self.config.data, self.config),
             "dataset_fingerprint": data.fingerprint,
             "split": {
                 **{name: [int(i) for i in data.split[name]] for name in SPLITS},
