@@ -10,6 +10,9 @@ Two patterns:
   and rename it to ``NAME`` with :func:`finish_partial` only after the last write
   succeeded. Whatever was recorded before a crash stays readable in ``NAME.partial``.
 
+Reading untrusted files: :func:`require_regular_file` refuses FIFOs and devices before
+they are opened, :func:`read_bounded` also files over a size limit.
+
 A write that fails (disk full, quota, file size limit) raises :class:`WriteError`
 naming the file and the cause; the temporary file is removed and the target is
 left as it was.
@@ -22,6 +25,7 @@ import json
 import os
 import re
 import shutil
+import stat
 import sys
 import tempfile
 from collections.abc import Callable, Iterator
@@ -33,6 +37,7 @@ from beadsight.errors import BeadSightError
 
 PARTIAL_SUFFIX = ".partial"
 TEMP_SUFFIX = ".tmp"  # hidden ".NAME.<random>.tmp" files of atomic writes
+MAX_JSON_BYTES = 64 * 1024 * 1024  # a settings/metadata JSON file larger than this is refused
 
 
 class WriteError(BeadSightError):
@@ -69,16 +74,56 @@ class ClosesOrAborts:
             self.abort()
 
 
+def require_regular_file(
+    path: str | Path, error: type[BeadSightError] = BeadSightError, what: str = "a file"
+) -> os.stat_result:
+    """``path``'s stat if it is a regular file; ``error`` naming it otherwise. A FIFO, a
+    device (``/dev/zero``) or a socket would block a reader or never end; checked before
+    anything opens it (opening a FIFO blocks)."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise error(f"{path}: file not found (expected {what})") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read ({describe_os_error(e)})") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO or device)"
+        raise error(f"{path}: is {kind}; expected {what}")
+    return st
+
+
+def read_bounded(
+    path: str | Path,
+    max_bytes: int,
+    error: type[BeadSightError] = BeadSightError,
+    what: str = "a file",
+) -> bytes:
+    """The bytes of regular file ``path`` (:func:`require_regular_file`), at most
+    ``max_bytes``; a larger file (or one that grows past it while read) is ``error``."""
+    size = require_regular_file(path, error, what).st_size
+    data = b""
+    if size <= max_bytes:
+        with open(path, "rb") as f:
+            data = f.read(max_bytes + 1)
+    if size > max_bytes or len(data) > max_bytes:
+        raise error(
+            f"{path}: {max(size, len(data))} bytes, more than {max_bytes} for {what}; "
+            "not read (a corrupt or forged file?)"
+        )
+    return data
+
+
 def read_json_object(
     path: str | Path, error: type[BeadSightError] = BeadSightError, what: str = "a JSON object"
 ) -> dict[str, Any]:
-    """The JSON object in ``path``; ``error`` naming the file if it is missing, not JSON,
-    or not an object (``what`` says what was expected)."""
+    """The JSON object in ``path``; ``error`` naming the file if it is missing, not a
+    regular file, over :data:`MAX_JSON_BYTES`, not JSON, or not an object (``what`` says
+    what was expected)."""
     path = Path(path)
+    if not (path.exists() or path.is_symlink()):
+        raise error(f"{path}: file not found")
     try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise error(f"{path}: file not found") from None
+        data = json.loads(read_bounded(path, MAX_JSON_BYTES, error, what).decode("utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise error(f"{path}: not valid JSON ({e})") from None
     if not isinstance(data, dict):
@@ -95,6 +140,29 @@ def refuse_existing(path: str | Path, overwrite: bool = False, flag: str = "--ov
         raise OutputExistsError(
             f"{path}: already exists; choose another output name, or pass {flag} to replace it"
         )
+    return path
+
+
+def prepare_output_folder(
+    path: str | Path, overwrite: bool = False, flag: str = "--overwrite"
+) -> Path:
+    """Create output folder ``path``; the one rule for commands that write a folder.
+
+    A file of that name is refused (it is not a folder), and so is a folder that already
+    holds anything unless ``overwrite``: the command would replace files it did not write.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputExistsError(f"{path}: is a file; expected a folder to write into")
+    if path.is_dir() and any(path.iterdir()) and not overwrite:
+        raise OutputExistsError(
+            f"{path}: folder exists and is not empty; choose another output folder, or pass "
+            f"{flag} to replace its files"
+        )
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise write_error(path, e) from e
     return path
 
 

@@ -56,6 +56,10 @@ class FisheyeLens:
             raise LensError(f"D must have 4 coefficients (k1..k4), got {d.size}")
         if not (np.isfinite(k).all() and np.isfinite(d).all()):
             raise LensError("K and D must be finite")
+        if not (k[0, 0] > 0 and k[1, 1] > 0):  # 0 maps every pixel to one point
+            raise LensError(
+                f"K's focal lengths fx, fy must be > 0 px, got {k[0, 0]:g}, {k[1, 1]:g}"
+            )
         object.__setattr__(self, "K", k)
         object.__setattr__(self, "D", d)
         object.__setattr__(self, "image_hw", (int(self.image_hw[0]), int(self.image_hw[1])))

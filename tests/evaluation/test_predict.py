@@ -194,7 +194,7 @@ def test_failed_run_keeps_existing_output(tiny_model, tmp_path):
     junk = tmp_path / "junk.avi"
     junk.write_bytes(b"\x00" * 4096)
     with pytest.raises(PredictionError):
-        predict_recording(tiny_model, junk, out, progress=False)
+        predict_recording(tiny_model, junk, out, progress=False, overwrite=True)
     assert out.read_bytes() == b"previous results"
 
 

@@ -48,7 +48,7 @@ def test_predict_write_error_keeps_an_earlier_result(make_dataset, tiny_model, f
     out = full_disk / "pressure.h5"
     out.write_bytes(b"an earlier result")
     with pytest.raises(WriteError, match=r"pressure\.h5.*disk full"):
-        predict_recording(tiny_model, data, out, device="cpu", progress=False)
+        predict_recording(tiny_model, data, out, device="cpu", progress=False, overwrite=True)
     assert out.read_bytes() == b"an earlier result"
     assert _leftovers(full_disk) == []
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import subprocess
 import sys
 import time
@@ -286,3 +287,51 @@ def test_record_presses_in_the_same_second_make_new_files(model, tmp_path):
     with open_readings(first) as a, open_readings(second) as b:
         assert len(a) >= 3 and len(b) >= 3
         assert b.timestamp_s[0] > a.timestamp_s[-1]  # two recordings, one after the other
+
+
+def test_cli_live_on_a_disk_full_at_start_leaves_no_partial(model, presses, full_disk, capsys):
+    """Issue 26 item 6: nothing recorded, so no (0-byte) ``.partial`` is left to refuse the
+    next run."""
+    from helpers.live import live_argv, write_video
+
+    frames, _ = presses
+    video = write_video(full_disk.parent / "v.avi", frames[:30], fps=60)
+    checkpoint = model.save(full_disk.parent / "tiny.pt")
+    filler = full_disk / "filler"
+    fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
+    try:  # fill the disk up to the last byte
+        while os.write(fd, b"\0" * 4096):
+            pass
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+    out = full_disk / "rec.h5"
+    more = ["--no-viewer", "--no-stream", "--output", str(out), "--frames", "5", "--loop"]
+    assert main(live_argv(checkpoint, video, *more)) == 1
+    err = capsys.readouterr().err
+    assert f"could not write {out}: disk full; nothing was recorded" in err
+    assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
+
+
+def test_to_mcap_with_a_nan_timestamp_is_a_named_error_and_leaves_nothing(
+    model, presses, tmp_path, capsys
+):
+    """Issue 26: a readings file with a NaN timestamp: one line naming the file and field,
+    exit 1, and no ``.partial`` of the MCAP file."""
+    import h5py
+
+    frames, _ = presses
+    path = tmp_path / "rec.h5"
+    sensor = LiveSensor(model, ScriptedSource(frames[:40]), **BACKEND).open()
+    sensor.start_recording(path)
+    with sensor:
+        assert sensor.wait(60)
+        sensor.stop_recording()
+    with h5py.File(path, "r+") as f:
+        f["timestamp_s"][3] = np.nan
+    out = tmp_path / "rec.mcap"
+    assert main(["to-mcap", str(path), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert f"{path}: dataset 'timestamp_s' has 1 NaN/inf value(s) (first at reading 3)" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.h5"]

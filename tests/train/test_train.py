@@ -168,7 +168,9 @@ def test_train_cli_writes_a_complete_run_folder(make_dataset, tmp_path, capsys):
         model = load_checkpoint(run / name)
         assert model.span == 15 and model.image_size == 64 and model.meta.model.width == 8
         t = model.meta.training
-        assert t["dataset_path"] == str(data.resolve())
+        # named relative to the run folder (issue 26: no absolute paths of this machine)
+        assert t["dataset_path"] == os.path.relpath(data.resolve(), run.resolve())
+        assert (run / t["dataset_path"]).resolve() == data.resolve()
         assert t["dataset_fingerprint"] == split["dataset_fingerprint"]
         assert t["split"]["test"] == split["test"] and t["split"]["train"] == split["train"]
         assert t["config"]["width"] == 8 and t["step"] == 4 and t["epoch"] == 1
@@ -248,13 +250,15 @@ def test_fine_tune_from_a_checkpoint_with_a_cosine_schedule(make_dataset, tmp_pa
         torch.testing.assert_close(value, source.module.net.state_dict()[name], atol=1e-8, rtol=0)
     assert model.meta.pixel_mean == source.meta.pixel_mean
     assert model.meta.output_scale_kpa == source.meta.output_scale_kpa
-    assert model.meta.provenance["init"]["path"] == str((base / "best.pt").resolve())
+    init_path = model.meta.provenance["init"]["path"]
+    assert init_path == os.path.relpath((base / "best.pt").resolve(), tuned.resolve())
+    assert (tuned / init_path).resolve() == (base / "best.pt").resolve()
     lrs = [line["lr"] for line in _metrics(tuned) if line["event"] == "train"]
     assert lrs[-1] == pytest.approx(0.0)  # the last step ran at lr_min
     capsys.readouterr()
     assert main(["info", str(tuned / "last.pt"), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
-    assert summary["initialised_from"] == str((base / "best.pt").resolve())
+    assert summary["initialised_from"] == init_path  # relative to the run, as recorded
     assert (summary["format"], summary["width"], summary["step"]) == ("beadsight", 8, 3)
     assert summary["parameters"] == sum(p.numel() for p in model.module.parameters())
 

@@ -7,6 +7,7 @@ the command line reads its defaults from here.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from beadsight.config import DEVICE_CHOICES, ConfigError, _Serializable, require_paths
@@ -49,8 +50,8 @@ class CalibrateConfig(_Serializable):
     def __post_init__(self) -> None:
         require_paths(self, "data", "out")
         for name in ("budget_min", "lr", "val_every_min"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")
+            if not 0 < getattr(self, name) < math.inf:
+                raise ConfigError(f"{name} must be finite and > 0, got {getattr(self, name)!r}")
         if self.presses is not None and self.presses < 1:
             raise ConfigError(f"presses must be >= 1, got {self.presses}")
         if self.skip < 0 or self.batch_size < 1:

@@ -33,11 +33,9 @@ from beadsight.calibrate.align import align_to_rest, fit_force_gain, with_meta
 from beadsight.calibrate.config import (
     ALIGNED_FILE,
     CALIBRATION_SPLIT,
-    METRICS_FILE,
     MIN_PRESSES,
     MODEL_FILE,
     RECOMMENDED_PRESSES,
-    REPORT_FILE,
     TRAIN_FOLDER,
     CalibrateConfig,
 )
@@ -46,6 +44,7 @@ from beadsight.config import ConfigError, ContactThresholds
 from beadsight.data.dataset import DatasetError, dataset_fingerprint, open_dataset
 from beadsight.data.splits import dataset_window_ends
 from beadsight.evaluation.evaluate import evaluate
+from beadsight.files import prepare_output_folder
 from beadsight.train.config import SIZE_MULTIPLE, TrainConfig
 from beadsight.train.prepare import split_used_presses
 from beadsight.train.run import BEST_CHECKPOINT
@@ -80,17 +79,11 @@ def base_checkpoint(base: str | None) -> Path:
 
 
 def prepare_out(out: Path, overwrite: bool) -> None:
-    """Refuse to write over an earlier calibration unless ``overwrite`` (then remove its files)."""
-    names = (MODEL_FILE, ALIGNED_FILE, METRICS_FILE, REPORT_FILE, TRAIN_FOLDER)
-    present = [n for n in names if (out / n).exists()]
-    if present and not overwrite:
-        raise ConfigError(
-            f"out {out} already holds a calibration ({', '.join(present)}); pass --overwrite "
-            "to replace it, or choose another --out"
-        )
+    """Refuse a ``out`` that is a file, or a folder that is not empty, unless ``overwrite``
+    (then an earlier calibration's fine-tuning run folder is removed)."""
+    prepare_output_folder(out, overwrite)
     if (out / TRAIN_FOLDER).is_dir():
         shutil.rmtree(out / TRAIN_FOLDER)
-    out.mkdir(parents=True, exist_ok=True)
 
 
 def train_config(config: CalibrateConfig, base: PressureModel, base_path: Path) -> TrainConfig:

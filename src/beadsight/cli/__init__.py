@@ -18,11 +18,14 @@ import argparse
 import importlib
 import inspect
 import logging
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Callable, Iterable, Sequence
 
 from beadsight import __version__
+from beadsight.cli.options import check_numbers
 
 AREAS = (
     "data",
@@ -37,6 +40,7 @@ AREAS = (
 EXIT_USER_ERROR = 1
 EXIT_INTERNAL_ERROR = 70  # EX_SOFTWARE (sysexits.h)
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, as a shell reports a process SIGTERM ended
 
 Handler = Callable[[argparse.Namespace], "int | None"]
 
@@ -112,6 +116,7 @@ def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentPars
         importlib.import_module(f"beadsight.cli.{area}").register(registry)
     for name in registry.names if commands is None else commands:
         registry.build(name)
+    check_numbers(parser)
     return parser
 
 
@@ -137,12 +142,35 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_command(args)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``docker stop``, systemd, ``kill``) raised as Ctrl-C is, so that every
+    command stops the same way: summary printed, recordings finished, run state saved."""
+
+
+def _terminate_like_ctrl_c(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def run_command(args: argparse.Namespace) -> int:
-    """Run the parsed command; errors become one line (the user's) or an internal error."""
+    """Run the parsed command; errors become one line (the user's) or an internal error.
+    SIGTERM is handled as Ctrl-C (:class:`Terminated`), exit 143."""
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate_like_ctrl_c) if main_thread else None
+    try:
+        return _run(args)
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args: argparse.Namespace) -> int:
     from beadsight.errors import USER_ERRORS
 
     try:
         return int(args.func(args) or 0)
+    except Terminated:
+        print("terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

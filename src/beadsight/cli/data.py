@@ -29,7 +29,13 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
     from beadsight.data.reference_file import EXPORT_FORMATS
 
     p.add_argument("data", help="dataset .h5 (this project's format)")
-    p.add_argument("--format", choices=EXPORT_FORMATS, default="reference")
+    p.add_argument(
+        "--format",
+        choices=EXPORT_FORMATS,
+        default="reference",
+        help="reference: the original BeadSight code's processed HDF5 layout (BGR frames, "
+        "grams, float32 columns; docs/data_format.md) (default: reference)",
+    )
     p.add_argument("--out", required=True, help="output .h5 file")
     p.add_argument(
         "--compression-level", type=int, default=0, help="gzip level of the images, 0 = none"
@@ -76,10 +82,11 @@ def _info(args: argparse.Namespace) -> int:
         summary = checkpoint_summary(path)
     else:  # a dataset, or a missing path, directory or device: open_dataset names it
         summary = dataset_summary(args.file)
-    if summary.get("warning"):
-        print(f"warning: {summary['warning']}", file=sys.stderr)
+    warning = summary.pop("warning", None)  # None: all is well, nothing to say
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     if args.json:
-        print(json.dumps(summary))
+        print(json.dumps({**summary, **({"warning": warning} if warning else {})}))
         return 0
     for key, value in summary.items():
         print(f"{key:>22}: {value}")

@@ -25,6 +25,9 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
         choices=config.SPLIT_CHOICES,
     )
     p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument(
+        "--overwrite", action="store_true", help="write into a --out folder that is not empty"
+    )
     _batch_and_device(p, config.EVALUATE_BATCH_SIZE)
     p.add_argument(
         "--max-frames",
@@ -54,6 +57,7 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, type=Path, help="checkpoint file (.pt)")
     p.add_argument("--input", required=True, type=Path, help="dataset (HDF5) or video file")
     p.add_argument("--out", required=True, type=Path, help="output file (.h5)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     add_option(
         p,
         "--preprocess",
@@ -87,8 +91,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
     plots to --out and print the metrics beside the paper's.
     """
     from beadsight.evaluation.evaluate import evaluate
+    from beadsight.files import prepare_output_folder
     from beadsight.report.paper import format_metrics_table
 
+    prepare_output_folder(args.out, args.overwrite)
     metrics = evaluate(
         args.checkpoint,
         args.data,
@@ -136,6 +142,7 @@ def run_predict(args: argparse.Namespace) -> int:
         device=args.device,
         progress=not args.no_progress,
         rest=args.rest,
+        overwrite=args.overwrite,
     )
     print(summarize_predictions(out))
     return 0

@@ -15,9 +15,20 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
     from beadsight.cli.options import add_option
     from beadsight.inference.config import EXPORT_FORMATS, EXPORT_PRECISIONS
 
-    p.add_argument("--checkpoint", required=True, help="beadsight or reference checkpoint")
-    p.add_argument("--format", required=True, choices=EXPORT_FORMATS)
+    p.add_argument(
+        "--checkpoint",
+        default=None,
+        help="beadsight or reference checkpoint; default: the shipped sim model (as live and "
+        "health)",
+    )
+    p.add_argument(
+        "--format",
+        required=True,
+        choices=EXPORT_FORMATS,
+        help="onnx: an .onnx file for onnxruntime; openvino: an OpenVINO IR (.xml + .bin)",
+    )
     p.add_argument("--out", required=True, help=".onnx file, or OpenVINO .xml")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     add_option(p, "--precision", EXPORT_PRECISIONS[0], "model precision", choices=EXPORT_PRECISIONS)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
 
@@ -85,9 +96,16 @@ def _export(args: argparse.Namespace) -> int:
     Export a checkpoint with its normalisation and metadata; the file is checked against
     torch and removed if it disagrees.
     """
+    from beadsight.assets import shipped_model_path
     from beadsight.inference.export import export_model
 
-    report = export_model(args.checkpoint, args.format, args.out, args.precision)
+    report = export_model(
+        args.checkpoint or shipped_model_path(),
+        args.format,
+        args.out,
+        args.precision,
+        overwrite=args.overwrite,
+    )
     if args.json:
         print(json.dumps(report.to_dict()))
     else:

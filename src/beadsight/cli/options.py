@@ -11,10 +11,53 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from collections.abc import Iterable
 from typing import Any
 
 Row = tuple  # (field, help) or (field, help, kwargs)
+MAX_FLAG_VALUE = 2**32  # no count, size, seed, rate or duration flag means more (a typo)
+MAX_BUDGET_MIN = 7 * 24 * 60.0  # a wall-clock budget beyond a week, minutes (a typo)
+
+
+class Number:
+    """An argparse ``type`` for numbers: ``kind`` (int or float), finite, from ``low`` to
+    ``high`` (``positive``: above ``low``). :func:`check_numbers` gives every int or float
+    flag the default one (0 .. :data:`MAX_FLAG_VALUE`); a flag with other bounds names its
+    own, e.g. ``type=Number(float, positive=True, high=MAX_BUDGET_MIN)``."""
+
+    def __init__(
+        self,
+        kind: type = float,
+        low: float = 0,
+        high: float = MAX_FLAG_VALUE,
+        *,
+        positive: bool = False,
+    ):
+        self.kind, self.low, self.high, self.positive = kind, low, high, positive
+        self.__name__ = kind.__name__  # argparse names the type in its "invalid ..." errors
+
+    def __call__(self, text: str) -> int | float:
+        value = self.kind(text)
+        if not (math.isfinite(value) and self.low <= value <= self.high) or (
+            self.positive and value == self.low
+        ):
+            relation = f"> {show(self.low)}" if self.positive else f">= {show(self.low)}"
+            raise argparse.ArgumentTypeError(
+                f"expected a finite number {relation} and <= {show(self.high)}, got {text!r}"
+            )
+        return value
+
+
+def check_numbers(parser: argparse.ArgumentParser) -> None:
+    """Give every int or float option of ``parser`` and its subcommands the default
+    :class:`Number` check (finite, 0 .. :data:`MAX_FLAG_VALUE`)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                check_numbers(sub)
+        elif action.type in (int, float):
+            action.type = Number(action.type)
 
 
 def field_default(cls: type, name: str) -> Any:

@@ -54,9 +54,11 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     add_fields(p, SimConfig, SIMULATE_SIM_FLAGS)
     p.add_argument(
         "--compression",
-        choices=("gzip", "lzf"),
-        default=None,
-        help="HDF5 compression of the frames (default none)",
+        choices=("gzip", "lzf", "none"),
+        default="gzip",
+        help="HDF5 compression of the frames: gzip (the default) writes about 12%% less than "
+        "none, lzf 3%% less (measured on simulated frames, whose sensor noise compresses "
+        "little)",
     )
     p.add_argument(
         "--pouches",
@@ -117,7 +119,7 @@ def _simulate(args: argparse.Namespace) -> int:
         n_beads=args.n_beads,
         image_size=args.image_size_px,
         fps=args.fps,
-        compression=args.compression,
+        compression=None if args.compression == "none" else args.compression,
         variety=args.variety,
         profile=args.profile,
         overwrite=args.overwrite,

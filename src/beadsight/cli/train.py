@@ -5,6 +5,10 @@ from __future__ import annotations
 import argparse
 import os
 
+from beadsight.cli.options import MAX_BUDGET_MIN, Number
+
+MINUTES = Number(float, positive=True, high=MAX_BUDGET_MIN)  # budgets and intervals
+
 # TrainConfig fields offered as flags. Their defaults stay None ("not given") so that
 # only flags the user gives override the TOML file / the resumed run's config; the
 # help shows TrainConfig's default.
@@ -14,9 +18,13 @@ TRAIN_FLAGS = (
     (
         "budget_min",
         "wall-clock budget in minutes: stop then (or at --steps/--epochs, whichever is first)",
-        {"type": float, "metavar": "M"},
+        {"type": MINUTES, "metavar": "M"},
     ),
-    ("val_every_min", "also validate this often, minutes (default: every epoch)", {"type": float}),
+    (
+        "val_every_min",
+        "also validate this often, minutes (default: every epoch)",
+        {"type": MINUTES},
+    ),
     ("presses", "train on only this many presses of the dataset", {"type": int}),
     ("skip_presses", "drop the dataset's first presses (a new pouch's break-in)"),
     ("train_layers", "all, or decoder (the encoder stays as initialised)"),
@@ -145,7 +153,11 @@ CALIBRATE_FLAGS = (
         "checkpoint to start from (default: the shipped base model)",
         {"metavar": "CKPT", "type": str},
     ),
-    ("budget_min", "wall-clock budget of the whole calibration, minutes", {"metavar": "M"}),
+    (
+        "budget_min",
+        "wall-clock budget of the whole calibration, minutes",
+        {"metavar": "M", "type": MINUTES},
+    ),
     (
         "rest",
         "frames of the untouched sensor (.h5) for the zero-press alignment (default: the "
@@ -181,7 +193,6 @@ def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
         for name, help, *extra in CALIBRATE_FLAGS
     ]
     add_fields(p, CalibrateConfig, rows)
-    p.add_argument("--no-gain", dest="gain", action="store_false", help="no force gain")
 
 
 def _calibrate(args: argparse.Namespace) -> int:

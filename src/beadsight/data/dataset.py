@@ -19,6 +19,7 @@ import h5py
 import numpy as np
 
 from beadsight.config import ContactThresholds, SensorGeometry
+from beadsight.data.plausibility import ABSURD_FORCE_N, ABSURD_POSITION_MM
 from beadsight.data.presses import segment_presses
 from beadsight.errors import BeadSightError
 from beadsight.files import Closes
@@ -28,6 +29,8 @@ from beadsight.h5safe import find_dataset, open_h5
 FORMAT = "beadsight-dataset"
 FORMAT_VERSION = 1
 FINGERPRINT_SAMPLE_FRAMES = 4  # frames hashed (besides all labels) in a dataset fingerprint
+MAX_FPS = 10_000.0  # frames per second beyond any camera's: a corrupt attribute
+MIN_FORCE_N = -5.0  # lower at a valid frame is no scale's tare drift: a wrong sign or unit
 
 
 class DatasetError(BeadSightError, ValueError):
@@ -171,6 +174,7 @@ def _read(f: h5py.File, path: Path, thresholds: ContactThresholds) -> Dataset:
         raise DatasetError(
             f"{path}: field 'position' has non-finite values at valid frames (first at frame {bad[0]})"
         )
+    _check_ranges(path, fields)
     contact, press_id, presses = segment_presses(force, valid, position, thresholds)
     mean, std = fields.pop("pixel_mean"), fields.pop("pixel_std")
     return Dataset(
@@ -185,6 +189,29 @@ def _read(f: h5py.File, path: Path, thresholds: ContactThresholds) -> Dataset:
         _file=f,
         **fields,
     )
+
+
+def _check_ranges(path: Path, fields: dict[str, Any]) -> None:
+    """DatasetError naming the field unless fps, and force and position at valid frames, are
+    in the ranges a real rig produces (a corrupt or forged file otherwise)."""
+    fps = fields["fps"]
+    if not 0 < fps <= MAX_FPS:
+        raise DatasetError(
+            f"{path}: attribute 'fps' is {fps:g}; expected frames per second > 0 and <= {MAX_FPS:g}"
+        )
+    valid = fields["valid"]
+    for name, values, low, high, unit in (
+        ("force", fields["force_n"], MIN_FORCE_N, ABSURD_FORCE_N, "N"),
+        ("position", fields["position_mm"], -ABSURD_POSITION_MM, ABSURD_POSITION_MM, "mm"),
+    ):
+        inside = (values >= low) & (values <= high)
+        bad = np.flatnonzero(valid & ~(inside.all(axis=1) if inside.ndim > 1 else inside))
+        if len(bad):
+            raise DatasetError(
+                f"{path}: field '{name}' has {len(bad)} valid frame(s) outside {low:g} .. "
+                f"{high:g} {unit} (first at frame {bad[0]}: {values[bad[0]]}); expected a "
+                "rig's readings, or mark those frames invalid"
+            )
 
 
 def _check_format(f: h5py.File, path: Path) -> bool:

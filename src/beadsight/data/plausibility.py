@@ -3,6 +3,8 @@
 * **Absurd values** (a corrupted or forged log: ``1e308`` in a time field, ``1e300 g``)
   raise :class:`~beadsight.data.recording.RecordingError` naming the file and line,
   before anything is written.
+* **Printer positions** beyond :data:`ABSURD_POSITION_MM`, or missing (NaN) where the
+  finger is at a press (its position is the label), raise the same error.
 * **Readings beyond the scale's capacity** (configurable) are reported with file and
   line, and the frames whose force would be interpolated from them are invalid.
 * **Timestamps going backwards** in any log are reported with file and line.
@@ -22,6 +24,7 @@ from beadsight.data.recording.text import describe_lines
 
 ABSURD_TIME_S = 1e10  # |timestamp| beyond this (year 2286 as unix time) is corruption
 ABSURD_FORCE_N = 1e5  # ~10 tonnes: no tactile rig's scale reads this; a corrupted value
+ABSURD_POSITION_MM = 1000.0  # a printer position a metre out: no rig reaches it; corruption
 STREAMS = {"frames": "frame", "force": "force reading", "moves": "printer command"}
 
 
@@ -44,6 +47,7 @@ def check_recording(rec: Recording, capacity_n: float) -> Plausibility:
     """Check ``rec``; raises RecordingError for absurd values (see the module docstring)."""
     for stream in STREAMS:
         _check_times(rec, stream)
+    _check_positions(rec)
     force = rec.force.force_n
     absurd = np.flatnonzero(np.abs(force) > ABSURD_FORCE_N)
     if absurd.size:
@@ -79,6 +83,25 @@ def _check_times(rec: Recording, stream: str) -> None:
                 f"{rec.where(stream, i)}: {STREAMS[stream]} time {clock}={t[i]:g} s is absurd "
                 f"(beyond {ABSURD_TIME_S:g} s): the log is corrupt; {bad.size} such value(s). "
                 "Fix or remove those lines."
+            )
+
+
+def _check_positions(rec: Recording) -> None:
+    """RecordingError naming the line of an absurd printer position, or of a missing one
+    at a press."""
+    xyz, press = rec.moves.xyz_mm, rec.moves.press
+    absurd = np.isfinite(xyz) & (np.abs(xyz) > ABSURD_POSITION_MM)
+    missing = ~np.isfinite(xyz[:, :2]) & (press >= 0)[:, None]
+    for bad, what in (
+        (absurd, f"is absurd (beyond {ABSURD_POSITION_MM:g} mm)"),
+        (missing, "is missing at a press (its position is the label)"),
+    ):
+        rows = np.flatnonzero(bad.any(axis=1))
+        if rows.size:
+            i = int(rows[0])
+            raise RecordingError(
+                f"{rec.where('moves', i)}: printer position {[float(v) for v in xyz[i]]} mm {what}: the log "
+                f"is corrupt; {rows.size} such command(s). Fix or remove those lines."
             )
 
 

@@ -17,6 +17,8 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +38,8 @@ from beadsight.data.plausibility import check_recording
 from beadsight.data.process_config import ProcessConfig
 from beadsight.data.qa import plot_qa, qa_paths, quality_summary, write_qa
 from beadsight.data.recording import Recording, RecordingError, open_recording
-from beadsight.files import OutputExistsError, refuse_existing
+from beadsight.errors import BeadSightError
+from beadsight.files import OutputExistsError, WriteError, partial_path, refuse_existing
 from beadsight.preprocess import Preprocessor
 
 __all__ = [
@@ -101,20 +104,36 @@ def process_recording(
     }
     order = np.lexsort((rec.frames.index, rec.frames.chunk))
     stats = {"missing_video": 0, "unlogged_video": 0, "undecodable": 0}
-    with DatasetWriter(
-        out,
-        geometry,
-        channel_order=pre_used.channel_order,
-        fps=rec.fps,
-        provenance=provenance,
-        compression=config.compression,
-    ) as writer:
+    with (
+        _no_partial_after_input_error(out),
+        DatasetWriter(
+            out,
+            geometry,
+            channel_order=pre_used.channel_order,
+            fps=rec.fps,
+            provenance=provenance,
+            compression=config.compression,
+        ) as writer,
+    ):
         written = stream_frames(rec, order, labels, decode, writer, config, stats, progress)
     elapsed = time.perf_counter() - started
     qa = quality_summary(rec, labels, out, stats, written, elapsed, pre_used, factor, config)
     qa.update(force_counter=rec.force_counter, plausibility=checked.summary())
     write_qa(out, qa)
     return qa
+
+
+@contextmanager
+def _no_partial_after_input_error(out: Path) -> Iterator[None]:
+    """Remove ``out``'s ``.partial`` when a named error about the recording ends the block:
+    the dataset cannot be completed from that input, and rerunning rebuilds it. A failed
+    write (disk full) and Ctrl-C keep what was written, readable, as the writer promises."""
+    try:
+        yield
+    except BeadSightError as e:
+        if not isinstance(e, WriteError):
+            partial_path(out).unlink(missing_ok=True)
+        raise
 
 
 def _check_output(raw: Path, out: Path, overwrite: bool) -> None:

@@ -101,11 +101,25 @@ def reference_columns(ds: Dataset, centre: np.ndarray) -> dict[str, np.ndarray]:
     known = np.isfinite(ds.position_mm).all(axis=1)
     position = np.where(known[:, None], ds.position_mm, no_press[None])
     return {
-        "forces": grams.astype(np.float32),
-        "position": position.astype(np.float32),
+        "forces": _float32(ds, "forces", grams),
+        "position": _float32(ds, "position", position),
         "valid": ds.valid.astype(bool),
-        "time": ds.timestamp_s.astype(np.float32),
+        "time": _float32(ds, "time", ds.timestamp_s),
     }
+
+
+def _float32(ds: Dataset, name: str, values: np.ndarray) -> np.ndarray:
+    """``values`` as float32; DatasetError naming the column and frame for a finite value
+    that float32 cannot hold (it would be written as inf, which readers refuse)."""
+    limit = np.finfo(np.float32).max
+    lost = np.isfinite(values) & (np.abs(values) > limit)
+    if lost.any():
+        frame = int(np.flatnonzero(lost.reshape(len(values), -1).any(axis=1))[0])
+        raise DatasetError(
+            f"{ds.path}: frame {frame}: {name} {values[frame]} does not fit the reference "
+            f"layout's float32 (|x| <= {limit:.3g}); fix or drop that frame"
+        )
+    return values.astype(np.float32)
 
 
 def export_reference(
@@ -126,9 +140,10 @@ def export_reference(
         if ds.is_reference:
             raise DatasetError(f"{src}: already in the reference layout; nothing to export")
         params = experiment_parameters(ds)
+        columns = reference_columns(ds, np.asarray(params["center"], np.float64))
         try:
             with h5py.File(partial, "w") as f:
-                _write_reference(f, ds, params, int(compression_level))
+                _write_reference(f, ds, params, columns, int(compression_level))
         except (OSError, RuntimeError) as e:
             raise WriteError(
                 f"could not write {partial}: {describe_write_failure(e)}; {dst} was not written"
@@ -136,7 +151,9 @@ def export_reference(
     return finish_partial(partial, dst)
 
 
-def _write_reference(f: h5py.File, ds: Dataset, params: dict, level: int) -> None:
+def _write_reference(
+    f: h5py.File, ds: Dataset, params: dict, columns: dict[str, np.ndarray], level: int
+) -> None:
     n, s = len(ds), ds.image_size
     images = f.create_dataset(
         "images",
@@ -145,7 +162,6 @@ def _write_reference(f: h5py.File, ds: Dataset, params: dict, level: int) -> Non
         dtype=np.uint8,
         **({"compression": level} if level > 0 else {}),
     )
-    columns = reference_columns(ds, np.asarray(params["center"], np.float64))
     for name, values in columns.items():
         f.create_dataset(name, data=values, chunks=(1, *values.shape[1:]))
     f.attrs.update(params)

@@ -65,6 +65,7 @@ from beadsight.evaluation.config import DEFAULT_DEVICE, PREDICT_PREPROCESS
 from beadsight.evaluation.config import PREDICT_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.evaluation.h5writer import IncrementalH5
 from beadsight.evaluation.rest_images import REST_NONE, FileRest, StreamRest, stream_rest
+from beadsight.files import refuse_existing
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
 from beadsight.inference.frames import check_preprocess, input_converter
 from beadsight.preprocess import FrameSizeError
@@ -273,6 +274,7 @@ def predict_recording(
     device: str | torch.device = DEFAULT_DEVICE,
     progress: bool = True,
     rest: str | Path | None = None,
+    overwrite: bool = False,
 ) -> Path:
     """Predict a pressure map for every frame of a dataset or video; write ``out`` (HDF5).
 
@@ -286,6 +288,7 @@ def predict_recording(
     rest: for a rest-referenced model, a rest file
     (:func:`~beadsight.data.rest.load_rest_file`); without it
     the rest image comes from the input (``rest_source`` in this module's docstring).
+    An existing ``out`` is refused unless ``overwrite``.
     Returns the output path; the layout is in this module's docstring.
     """
     if batch_size < 1:
@@ -295,6 +298,7 @@ def predict_recording(
         raise PredictionError(f"{input}: input file not found")
     if out.exists() and out.resolve() == input.resolve():
         raise PredictionError(f"{out}: the output would overwrite the input")
+    refuse_existing(out, overwrite)
     model = as_model(checkpoint, device)
     source = _open_source(input, model, preprocess)
     s, t = model.image_size, model.span

@@ -28,6 +28,7 @@ from pathlib import Path
 
 from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.errors import ConfigError
+from beadsight.files import refuse_existing
 from beadsight.inference.config import EXPORT_FORMATS as FORMATS
 from beadsight.inference.config import EXPORT_PRECISIONS
 from beadsight.inference.export_format import (
@@ -88,8 +89,11 @@ def export_model(
     out: str | Path,
     precision: str = "fp32",
     threads: int | None = None,
+    overwrite: bool = False,
 ) -> ExportReport:
     """Export, then check the file against torch; a file that disagrees is deleted.
+
+    An existing ``out`` (for OpenVINO: its ``.xml`` or ``.bin``) is refused unless ``overwrite``.
 
     returns: an :class:`ExportReport` with the measured max abs error in kPa.
     """
@@ -98,6 +102,8 @@ def export_model(
     out = Path(out)
     if format == "openvino" and out.suffix != ".xml":
         out = out.with_suffix(".xml") if out.suffix else out / "model.xml"
+    for path in (out, out.with_suffix(".bin")) if format == "openvino" else (out,):
+        refuse_existing(path, overwrite)
     writer = write_onnx if format == "onnx" else write_openvino
     path = writer(model, out, precision)
     backend = open_exported(path, model, precision=precision, threads=threads, check=False)

@@ -149,8 +149,10 @@ class TrainConfig(_Serializable):
         for name in _OPTIONAL_POSITIVE:
             value = getattr(self, name)
             if value is not None:
-                if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0:
+                if isinstance(value, bool) or not isinstance(value, numbers.Real):
                     raise ConfigError(f"{name} must be a number > 0, got {value!r}")
+                if not 0 < value < math.inf:
+                    raise ConfigError(f"{name} must be finite and > 0, got {value!r}")
                 object.__setattr__(self, name, float(value))
         if not self.lr > 0:
             raise ConfigError(f"lr must be > 0, got {self.lr}")

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -160,12 +162,19 @@ def output_scale_kpa(contact_force_n: np.ndarray, geometry: SensorGeometry) -> f
     return float(disk.mean(dtype=np.float64))
 
 
+def run_relative(path: str | Path, config: TrainConfig) -> str:
+    """``path`` as the run folder ``config.out`` reaches it (``../data/train.h5``): what a
+    checkpoint records, so that its model card names no folder of the training machine."""
+    return os.path.relpath(Path(path).resolve(), Path(config.out).resolve())
+
+
 def provenance(config: TrainConfig, ds: Dataset) -> dict[str, Any]:
-    """Where a trained model comes from (stored in its checkpoints)."""
+    """Where a trained model comes from (stored in its checkpoints); paths as
+    :func:`run_relative` names them."""
     record = {
         "source": "beadsight train",
         "beadsight_version": __version__,
-        "dataset": str(Path(config.data).resolve()),
+        "dataset": run_relative(config.data, config),
         "dataset_source": ds.provenance.get("source"),
         "fps": float(ds.fps),  # camera rate: the predictor's gap detection uses it
         "created_unix": time.time(),
@@ -231,7 +240,7 @@ def init_model(
         geometry=ds.geometry.with_image_size(data.image_size),
         provenance={
             **provenance(config, ds),
-            "init": {"path": str(Path(path).resolve()), "provenance": source.meta.provenance},
+            "init": {"path": run_relative(path, config), "provenance": source.meta.provenance},
         },
         training={},
     )
@@ -285,15 +294,48 @@ def load_resume(path: Path, config: TrainConfig, image_size: int, fingerprint: s
                 f"{path}: field '{name}' is {a!r} in the checkpoint but {b!r} in this "
                 "configuration; a resumed run keeps its settings (start a new --out to change it)"
             )
-    split = {name: np.asarray(training["split"][name], dtype=np.int64) for name in SPLITS}
-    return Resumed(
-        model=model,
-        split=split,
-        state=state,
-        step=int(state.get("step", training.get("step", 0))),
-        elapsed_s=float(state.get("elapsed_s", 0.0)),
-        best=dict(training.get("best_val") or {}),
-    )
+    with tampered_state_errors(path):
+        split = {name: np.asarray(training["split"][name], dtype=np.int64) for name in SPLITS}
+        return Resumed(
+            model=model,
+            split=split,
+            state=state,
+            step=int(state.get("step", training.get("step", 0))),
+            elapsed_s=float(state.get("elapsed_s", 0.0)),
+            best=dict(training.get("best_val") or {}),
+        )
+
+
+def load_optimizer_state(optimizer: torch.optim.Optimizer, state: Any) -> None:
+    """``optimizer.load_state_dict(state)``; ValueError unless every tensor of the loaded
+    state (Adam's moments) has its parameter's shape: a state of another model would fail
+    only at the next step."""
+    optimizer.load_state_dict(state)
+    for group in optimizer.param_groups:
+        for param in group["params"]:
+            for name, value in optimizer.state.get(param, {}).items():
+                if torch.is_tensor(value) and value.ndim and value.shape != param.shape:
+                    raise ValueError(
+                        f"optimizer state {name!r} has shape {tuple(value.shape)}, expected "
+                        f"{tuple(param.shape)}"
+                    )
+
+
+@contextmanager
+def tampered_state_errors(path: Path) -> Iterator[None]:
+    """Any error reading or applying ``path``'s training state (a damaged or tampered
+    last.pt: missing keys, wrong types, optimizer or RNG states of another shape) becomes
+    one CheckpointError naming the file."""
+    try:
+        yield
+    except (KeyError, TypeError, ValueError, IndexError, RuntimeError, AttributeError) as e:
+        if isinstance(e, CheckpointError):
+            raise
+        raise CheckpointError(
+            f"{path}: the training state cannot be resumed ({type(e).__name__}: "
+            f"{str(e).splitlines()[0] if str(e) else 'malformed'}); the file is damaged or "
+            "was not written by this run: start a new --out"
+        ) from None
 
 
 def _plain(value: Any) -> Any:

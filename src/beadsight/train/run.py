@@ -21,7 +21,12 @@ from typing import Any
 
 from beadsight.checkpoint import CheckpointError, PressureModel
 from beadsight.config import ConfigError
-from beadsight.files import atomic_write_text, os_errors_as_write_errors, remove_stale_temps
+from beadsight.files import (
+    OutputExistsError,
+    atomic_write_text,
+    os_errors_as_write_errors,
+    remove_stale_temps,
+)
 from beadsight.train.config import CONFIG_FILE
 
 logger = logging.getLogger(__name__)
@@ -59,6 +64,8 @@ class RunFolder:
 
     def check(self, resume: bool) -> None:
         """Refuse to resume without ``last.pt``, or to start over a run that has one."""
+        if self.path.exists() and not self.path.is_dir():
+            raise OutputExistsError(f"{self.path}: is a file; expected a run folder (--out)")
         if resume and not self.last.is_file():
             raise CheckpointError(
                 f"{self.last}: no checkpoint to resume from (out={self.path}); "

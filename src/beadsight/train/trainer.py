@@ -52,11 +52,14 @@ from beadsight.train.distributed import Distributed, resolve_device
 from beadsight.train.prepare import (
     check_image_size,
     init_model,
+    load_optimizer_state,
     load_resume,
     new_model,
     prepare_data,
+    run_relative,
     split_record,
     split_used_presses,
+    tampered_state_errors,
     trainable_parameters,
 )
 from beadsight.train.run import CONFIG_FILE, SPLIT_FILE, RunFolder
@@ -132,10 +135,11 @@ class Trainer:
         self.scaler = torch.amp.GradScaler("cuda") if config.precision == "fp16" else None
         self.autocast_dtype = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(config.precision)
         if self.resume_state is not None:
-            self.optimizer.load_state_dict(self.resume_state["optimizer"])
-            if self.scaler is not None and self.resume_state.get("scaler"):
-                self.scaler.load_state_dict(self.resume_state["scaler"])
-            self._restore_rng(self.resume_state)
+            with tampered_state_errors(self.run.last):
+                load_optimizer_state(self.optimizer, self.resume_state["optimizer"])
+                if self.scaler is not None and self.resume_state.get("scaler"):
+                    self.scaler.load_state_dict(self.resume_state["scaler"])
+                self._restore_rng(self.resume_state)
         else:
             torch.manual_seed(config.seed + self.dist.rank)  # noise/dropout differ by rank
         self.ddp = net
@@ -230,7 +234,7 @@ class Trainer:
     def _training_meta(self) -> dict[str, Any]:
         data = self.data
         return {
-            "dataset_path": str(Path(self.config.data).resolve()),
+            "dataset_path": run_relative(self.config.data, self.config),
             "dataset_fingerprint": data.fingerprint,
             "split": {
                 **{name: [int(i) for i in data.split[name]] for name in SPLITS},

@@ -17,9 +17,11 @@ from typing import Any
 import numpy as np
 
 from beadsight.data.recording.logs import EVENTS_FILE, SESSION_FILE, RecordingError
-from beadsight.files import read_json_object
+from beadsight.files import read_bounded, read_json_object
 
 LINES_SHOWN = 3  # line numbers quoted in one warning before "and N more"
+MAX_LOG_BYTES = 1 << 30  # a text log beyond 1 GiB (days of 80 Hz force readings) is refused
+MAX_RECORD_CHARS = 64 * 1024  # one log record (line) beyond this is corruption
 
 
 @dataclass
@@ -57,10 +59,18 @@ def read_records(path: Path, sep: str, warnings: list[str]) -> list[tuple[int, s
     ``\\r`` at all is read line by line. A last record without its terminator is
     dropped as truncated (a crash mid-write) and reported.
     """
-    data = path.read_bytes().decode("utf-8", errors="replace")
+    data = read_bounded(path, MAX_LOG_BYTES, RecordingError, "a text log").decode(
+        "utf-8", errors="replace"
+    )
     if sep == "\r" and "\r" not in data:
         sep = "\n"
     records = data.split(sep)
+    long = next((k for k, r in enumerate(records) if len(r) > MAX_RECORD_CHARS), None)
+    if long is not None:
+        raise RecordingError(
+            f"{path} line {long + 1}: {len(records[long])} characters, more than "
+            f"{MAX_RECORD_CHARS} for one record (a corrupt log?)"
+        )
     tail = records.pop()  # text after the last terminator: '' when complete
     if tail.strip():
         warnings.append(

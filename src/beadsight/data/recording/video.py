@@ -9,10 +9,13 @@ import cv2
 import numpy as np
 
 from beadsight.data.recording.logs import RecordingError
+from beadsight.files import require_regular_file
 
 
 def probe_video(path: Path) -> tuple[tuple[int, int] | None, float | None]:
-    """((rows, cols), fps) of a video file; None where OpenCV cannot tell."""
+    """((rows, cols), fps) of a video file; None where OpenCV cannot tell. A path that is
+    not a regular file is a RecordingError (a FIFO would block OpenCV for ever)."""
+    require_regular_file(path, RecordingError, "a video file")
     cap = cv2.VideoCapture(str(path))
     try:
         if not cap.isOpened():
@@ -32,6 +35,7 @@ def iter_video(path: str | Path, *, packets: bool = False) -> Iterator[np.ndarra
     at reduced size) -- raises RecordingError if the video is not MJPG. Stops at the
     end of the file or at the first undecodable frame (a truncated chunk).
     """
+    require_regular_file(path, RecordingError, "a video file")
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise RecordingError(f"{path}: cannot open video")

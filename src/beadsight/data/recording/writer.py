@@ -334,7 +334,7 @@ class RecordingWriter:
         status = (
             "complete"
             if exc_type is None
-            else ("interrupted" if exc_type is KeyboardInterrupt else "error")
+            else ("interrupted" if issubclass(exc_type, KeyboardInterrupt) else "error")
         )
         try:
             self.close(status)

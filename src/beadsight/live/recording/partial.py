@@ -103,7 +103,16 @@ class PartialWriter(ClosesOrAborts):
         self._created = False  # this writer created self.partial
         with os_errors_as_write_errors(self.partial):
             self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._guard(lambda: self._create(provenance))
+        self._guard(lambda: self._start(provenance))
+
+    def _start(self, provenance: dict[str, Any] | None) -> None:
+        """:meth:`_create`; a ``.partial`` that a failing create left (an empty file on a
+        full disk) counts as created, so that the failure removes it."""
+        existed = self.partial.exists() or self.partial.is_symlink()
+        try:
+            self._create(provenance)
+        finally:
+            self._created = self._created or (not existed and self.partial.exists())
 
     def _prepare(self) -> None:
         """The writer's own state, before the file is created."""

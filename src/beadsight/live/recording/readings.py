@@ -272,6 +272,12 @@ def open_readings(path: str | Path) -> ReadingsFile:
                 )
         for name in SCALAR_FIELDS:
             columns[name] = columns[name][()]
+        bad = np.flatnonzero(~np.isfinite(columns["timestamp_s"]))
+        if bad.size:
+            raise ReadingsFileError(
+                f"{path}: dataset 'timestamp_s' has {bad.size} NaN/inf value(s) (first at "
+                f"reading {bad[0]}); expected finite seconds"
+            )
         provenance = json.loads(f.attrs.get("provenance", "{}"))
     except ReadingsFileError:
         f.close()
