@@ -11,13 +11,16 @@ import struct
 import threading
 import time
 
+import foxglove  # noqa: F401  (the 'ros' extra: a missing one is an import error)
 import numpy as np
 import pytest
 from helpers.live import BACKEND, wait_until
+from websockets.sync.client import connect
 
 from beadsight.errors import ConfigError
 from beadsight.live.config import MAX_AGE_S, LiveRunConfig
 from beadsight.live.outputs.base import OutputListener
+from beadsight.live.outputs.foxglove import FoxgloveServer
 from beadsight.live.sensor import LiveSensor
 
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
@@ -85,8 +88,6 @@ def test_output_listener_refuses_a_bad_max_age():
 # --- Foxglove, read by a real WebSocket client -----------------------------------------------
 def _foxglove_reader(url: str, stop: threading.Event, newest: list, errors: list) -> None:
     """A client that reads every message on its own thread and keeps the newest log time."""
-    from websockets.sync.client import connect
-
     try:
         with connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=10) as ws:
             json.loads(ws.recv(10))  # serverInfo
@@ -109,10 +110,6 @@ def test_foxglove_client_that_keeps_the_newest_message_reads_fresh_readings():
     """The pattern docs/live.md gives a client slower than the readings (read on a thread,
     keep the newest): sampled 10 times a second, what it holds is at most MAX_AGE_S old
     (capture time -> the moment the client uses it)."""
-    pytest.importorskip("foxglove", reason="the 'ros' extra is not installed")
-    pytest.importorskip("websockets.sync.client")
-    from beadsight.live.outputs.foxglove import FoxgloveServer
-
     sensor = LiveSensor(None, "sim", **BACKEND)
     sensor.open()
     server = FoxgloveServer(sensor.geometry, port=0)
