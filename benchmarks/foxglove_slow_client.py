@@ -25,11 +25,12 @@ from beadsight.live.outputs.foxglove import FoxgloveServer
 from beadsight.live.sensor import LiveSensor
 from beadsight.live.settings import LiveSettings
 
-ROWS = [(None, 0), (16, 0), (1, 0), (1, 16384)]  # (max_queue, SO_RCVBUF; 0: system default)
+# (max_queue: "default" = websockets' own (16 frames), None = unbounded; SO_RCVBUF, 0: default)
+ROWS = [("default", 0), (None, 0), (4, 0), (1, 0), (1, 16384)]
 WARMUP_S = 1.0  # ages before this (after the first reading) are not counted
 
 
-def run(max_queue: int | None, rcvbuf: int, seconds: float, period_s: float) -> dict:
+def run(max_queue: int | str | None, rcvbuf: int, seconds: float, period_s: float) -> dict:
     sensor = LiveSensor(None, "sim", LiveSettings(backend="torch", precision="fp32"))
     sensor.open()
     server = FoxgloveServer(sensor.geometry, port=0)
@@ -39,7 +40,9 @@ def run(max_queue: int | None, rcvbuf: int, seconds: float, period_s: float) -> 
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
     sock.connect(("127.0.0.1", server.port))
     ages = []
-    options = {"subprotocols": ["foxglove.sdk.v1"], "max_queue": max_queue}
+    options = {"subprotocols": ["foxglove.sdk.v1"]}
+    if max_queue != "default":
+        options["max_queue"] = max_queue
     with connect(server.url, sock=sock, **options) as ws:
         json.loads(ws.recv(10))
         channels = json.loads(ws.recv(10))["channels"]
@@ -68,6 +71,7 @@ def run(max_queue: int | None, rcvbuf: int, seconds: float, period_s: float) -> 
         "age_max_s": round(float(top), 3),
         "server_published": server.published,
         "server_skipped": server.skipped,
+        "client_skipped_messages": server.client_skipped,
     }
 
 

@@ -3,6 +3,7 @@ one Camera API over all of them, and their fault paths."""
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -336,3 +337,27 @@ def wait_for(predicate, timeout_s: float = 5.0) -> None:
     while not predicate():
         assert time.monotonic() < deadline, "timed out"
         time.sleep(0.01)
+
+
+def test_capture_gaps_under_load_are_summarised_every_10_s(caplog):
+    """Issue 26: 38 gap lines in 60 s flooded the console. 60 s at 30 fps with a 100 ms gap
+    every 1.5 s (40 gaps): the first is logged at once, the rest as one line per 10 s with
+    counts, and every lost frame is still counted."""
+    cam = VirtualCamera(flat(), fps=30)
+    frame, gaps = 0, 0  # t = frame / 30 s, exact
+    with caplog.at_level(logging.WARNING, logger="beadsight.devices.camera"):
+        while frame < 60 * 30:
+            cam._count_gap(frame / 30)
+            if frame % 45 == 44:  # every 1.5 s: 3 frame periods without a frame
+                frame, gaps = frame + 3, gaps + 1
+            else:
+                frame += 1
+        cam._count_gap(frame / 30)  # the frame after the last gap
+    lines = [r.getMessage() for r in caplog.records]
+    assert gaps == 40 and len(lines) == 6, lines
+    assert lines[0] == f"{cam.name}: 100 ms capture gap, ~2 frame(s) dropped"
+    assert lines[1] == (
+        f"{cam.name}: 7 capture gaps in the last 10 s, ~14 frame(s) dropped, longest 100 ms"
+    )
+    summarised = sum(int(line.split(": ")[1].split()[0]) for line in lines[1:])
+    assert 1 + summarised <= gaps and cam.stats.dropped == 2 * gaps

@@ -8,15 +8,13 @@ from __future__ import annotations
 import logging
 import typing
 
+import cyclonedds.idl  # noqa: F401  (the 'ros' extra: a missing one is an import error)
 import numpy as np
-import pytest
+import rosbags.typesys  # noqa: F401
 
-pytest.importorskip("cyclonedds.idl", reason="the 'ros' extra is not installed")
-pytest.importorskip("rosbags.typesys", reason="the 'ros' extra is not installed")
-
-from beadsight.live.outputs.ros2 import _build  # noqa: E402
-from beadsight.live.ros import messages as msg  # noqa: E402
-from beadsight.live.ros.types import (  # noqa: E402
+from beadsight.live.outputs.ros2 import _build
+from beadsight.live.ros import messages as msg
+from beadsight.live.ros.types import (
     TOPIC_TYPES,
     _struct,
     fast_byte_sequences,

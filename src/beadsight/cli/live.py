@@ -102,7 +102,7 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
 def _robot_arguments(p: argparse.ArgumentParser) -> None:
     """ROS 2 topics over DDS and the Foxglove WebSocket server (docs/live.md)."""
     from beadsight.cli.options import add_option
-    from beadsight.live.config import FOXGLOVE_PORT, ROS_NAMESPACE
+    from beadsight.live.config import FOXGLOVE_MAX_CLIENTS, FOXGLOVE_PORT, ROS_NAMESPACE
 
     g = p.add_argument_group(
         "ROS 2 and Foxglove", "need the 'ros' extra: pip install 'beadsight[ros]'"
@@ -138,6 +138,17 @@ def _robot_arguments(p: argparse.ArgumentParser) -> None:
         "over WebSocket on --host; layout: docs/foxglove-layout.json",
     )
     add_option(g, "--foxglove-port", FOXGLOVE_PORT, "Foxglove WebSocket port (0 = any free port)")
+    g.add_argument(
+        "--foxglove-allow-origin",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="also accept browser pages from this origin (repeatable), e.g. "
+        "https://app.foxglove.dev; by default only programs and local pages connect",
+    )
+    add_option(
+        g, "--foxglove-max-clients", FOXGLOVE_MAX_CLIENTS, "Foxglove clients at once (more: 503)"
+    )
 
 
 def run_live_command(args: argparse.Namespace) -> int:
@@ -182,6 +193,8 @@ def run_live_command(args: argparse.Namespace) -> int:
         ros_camera=args.ros_camera,
         foxglove=args.foxglove,
         foxglove_port=args.foxglove_port,
+        foxglove_allow_origins=tuple(args.foxglove_allow_origin),
+        foxglove_max_clients=args.foxglove_max_clients,
         max_age_s=args.max_age,
         output=args.output,
         overwrite=args.overwrite,

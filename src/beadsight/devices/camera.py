@@ -64,6 +64,7 @@ DEFAULT_HEIGHT_PX = 1024
 DEFAULT_FPS = 30.0
 DEFAULT_QUEUE_FRAMES = 64  # ~2 s at 30 fps; read() must keep up on average
 GAP_FACTOR = 1.5  # a capture gap above this many frame periods means frames were lost
+GAP_REPORT_S = 10.0  # after the first, capture gaps are logged as one summary line this often
 MIN_READ_TIMEOUT_S = 2.0  # default read timeout: max(this, 10 frame periods)
 MIN_TIMESTAMP_STEP_S = 1e-6  # consecutive t_unix stamps differ by at least this
 QUEUE_FULL_POLL_S = 0.1  # a file reader waiting on a full queue checks for close this often
@@ -183,6 +184,8 @@ class BufferedCamera(DeviceContext):
         self._end_reason = "stopped delivering frames"
         self._captured = self._delivered = self._dropped = self._overflowed = self._skipped = 0
         self._last_capture_mono: float | None = None
+        self._gap_report_s = -math.inf  # capture clock of the last gap line
+        self._gaps = [0, 0, 0.0]  # gaps, frames lost, longest gap s since that line
         self._last_t_unix = -math.inf
         self._truth = FrameTruth(name)
 
@@ -415,6 +418,25 @@ class BufferedCamera(DeviceContext):
         if gap_s > GAP_FACTOR / self.fps:
             lost = max(1, round(gap_s * self.fps) - 1)
             self._dropped += lost
+            self._report_gap(t_mono, gap_s, lost)
+
+    def _report_gap(self, t_mono: float, gap_s: float, lost: int) -> None:
+        """The first gap at once, then one line per :data:`GAP_REPORT_S` with the counts."""
+        gaps = self._gaps
+        gaps[0], gaps[1], gaps[2] = gaps[0] + 1, gaps[1] + lost, max(gaps[2], gap_s)
+        if t_mono - self._gap_report_s < GAP_REPORT_S:
+            return
+        if gaps[0] == 1:
             logger.warning(
                 "%s: %.0f ms capture gap, ~%d frame(s) dropped", self.name, gap_s * 1e3, lost
             )
+        else:
+            logger.warning(
+                "%s: %d capture gaps in the last %.0f s, ~%d frame(s) dropped, longest %.0f ms",
+                self.name,
+                gaps[0],
+                min(t_mono - self._gap_report_s, 99999),
+                gaps[1],
+                gaps[2] * 1e3,
+            )
+        self._gap_report_s, self._gaps = t_mono, [0, 0, 0.0]

@@ -16,6 +16,7 @@ VIEWER_PORT = 8000
 VIEWER_MAX_FPS = 20.0  # viewer updates per second, independent of the sensing rate
 VIEWER_MAX_KPA = 150.0  # top of the fixed colour scale (about an 18 N finger press)
 FOXGLOVE_PORT = 8765  # the Foxglove WebSocket server's usual port
+FOXGLOVE_MAX_CLIENTS = 4  # Foxglove clients served at once (more are refused with 503)
 MAX_AGE_S = 0.5  # an output never hands a client a reading older than this (the slow-client rule)
 ROS_NAMESPACE = "/beadsight"  # ROS 2 topics and Foxglove channels live under it
 MAX_DOMAIN_ID = 232  # the highest ROS_DOMAIN_ID whose DDS ports fit (ROS 2 docs: Linux)
@@ -51,6 +52,27 @@ def check_port(port: int, what: str) -> int:
     return port
 
 
+_ORIGIN = re.compile(r"^https?://[A-Za-z0-9.\-\[\]:]+$")
+
+
+def check_origins(origins: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """Browser origins as a browser sends them (``scheme://host[:port]``, no path)."""
+    for origin in origins:
+        if not isinstance(origin, str) or not _ORIGIN.match(origin):
+            raise ConfigError(
+                f"Foxglove allowed origin {origin!r}: expected scheme://host[:port] with no "
+                "path, e.g. https://app.foxglove.dev"
+            )
+    return tuple(origins)
+
+
+def check_count(value: int, what: str, upper: int = 1024) -> int:
+    """An integer 1..``upper``; else an error naming ``what``."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= upper:
+        raise ConfigError(f"{what} {value!r}: expected an integer 1..{upper}")
+    return value
+
+
 def check_positive(value: float, what: str, unit: str, upper: float = math.inf) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ConfigError(f"{what} {value!r}: expected a number of {unit}")
@@ -72,6 +94,8 @@ class LiveRunConfig:
         ``ros_domain`` under ``ros_namespace`` (also the Foxglove channels' namespace),
         with the camera frame if ``ros_camera``.
     foxglove, foxglove_port: serve Foxglove over WebSocket.
+    foxglove_allow_origins: browser origins (``https://app.foxglove.dev``) accepted beside
+        local pages; foxglove_max_clients: Foxglove clients served at once.
     max_age_s: the slow-client rule of ROS 2 and Foxglove: a reading older than this is
         skipped (and counted) instead of sent, s.
     output, overwrite: record every reading to ``output`` (.h5 or .mcap); an existing file
@@ -92,6 +116,8 @@ class LiveRunConfig:
     ros_camera: bool = False
     foxglove: bool = False
     foxglove_port: int = FOXGLOVE_PORT
+    foxglove_allow_origins: tuple[str, ...] = ()
+    foxglove_max_clients: int = FOXGLOVE_MAX_CLIENTS
     max_age_s: float = MAX_AGE_S
     output: Path | None = None
     overwrite: bool = False
@@ -108,6 +134,8 @@ class LiveRunConfig:
             raise ConfigError(
                 f"viewer port and Foxglove port are both {self.port}: give them different ports"
             )
+        set_("foxglove_allow_origins", check_origins(self.foxglove_allow_origins))
+        check_count(self.foxglove_max_clients, "Foxglove max_clients")
         set_("max_fps", check_positive(self.max_fps, "viewer max_fps", "updates per second"))
         set_("max_kpa", check_positive(self.max_kpa, "max_kpa", "kPa"))
         set_("max_age_s", check_positive(self.max_age_s, "max_age_s", "s"))

@@ -127,6 +127,8 @@ def _start_publishers(config: LiveRunConfig, sensor: LiveSensor, echo: Callable)
                 config.ros_namespace,
                 config.max_kpa,
                 max_age_s=config.max_age_s,
+                allowed_origins=config.foxglove_allow_origins,
+                max_clients=config.foxglove_max_clients,
             )
         )
         echo(f"foxglove: {started[-1].url} (layout: docs/foxglove-layout.json)")
@@ -149,9 +151,11 @@ def _finish(
         while publishers:
             publisher = publishers.pop()
             publisher.finish()  # also when sensing never started
+            to_clients = getattr(publisher, "client_skipped", None)
             echo(
                 f"{publisher.name}: published {publisher.published} readings, "
                 f"skipped {publisher.skipped}"
+                + ("" if to_clients is None else f"; clients skipped {to_clients} messages")
             )
 
 

@@ -68,6 +68,7 @@ class OutputListener:
         self.skipped = 0
         self.errors = 0
         self.busy_s = 0.0  # time spent in publish(), s
+        self.arrived_s = 0.0  # time.monotonic() when the update being published was pushed
         self._thread = threading.Thread(
             target=self._work, name=f"beadsight-{self.name}", daemon=True
         )
@@ -125,6 +126,7 @@ class OutputListener:
                 self._queued -= 1
                 arrived_s, update = item
                 if time.monotonic() - arrived_s <= self.max_age_s:
+                    self.arrived_s = arrived_s
                     return kind, update
                 self.skipped += 1
 

@@ -1,7 +1,8 @@
 """Live readings in Foxglove (app or web): ``beadsight live --foxglove``.
 
-Runs the Foxglove WebSocket server of ``foxglove-sdk`` (``pip install 'beadsight[ros]'``)
-and logs, per reading (channel names follow :mod:`beadsight.live.ros.messages`):
+Serves the Foxglove WebSocket protocol (:mod:`~beadsight.live.outputs.foxglove_ws`: local
+origins only by default, a few clients, one reading in flight per client), with messages
+encoded by ``foxglove-sdk`` (``pip install 'beadsight[ros]'``); per reading (channel names follow :mod:`beadsight.live.ros.messages`):
 
 =================================  ====================  ===========================================
 channel                            schema                content
@@ -24,7 +25,6 @@ Logging runs on its own thread (a slow client never slows sensing).
 from __future__ import annotations
 
 import json
-import threading
 from typing import Any
 
 import numpy as np
@@ -34,6 +34,7 @@ from beadsight.errors import BeadSightError
 from beadsight.live.config import (
     DEFAULT_HOST,
     MAX_AGE_S,
+    check_count,
     check_namespace,
     check_port,
     check_positive,
@@ -42,12 +43,9 @@ from beadsight.live.config import FOXGLOVE_PORT as DEFAULT_PORT
 from beadsight.live.config import VIEWER_MAX_KPA as DEFAULT_MAX_KPA
 from beadsight.live.outputs.base import DEFAULT_QUEUE_SIZE, OutputListener
 from beadsight.live.outputs.colormap import colormap_bgr, colour_indices
+from beadsight.live.outputs.foxglove_ws import MAX_CLIENTS, ChannelSpec, FoxgloveWebSocket
 from beadsight.live.ros import messages as msg
 
-MESSAGES_PER_READING = 4  # camera, pressure, pressure_image, reading (health: about 1 a second)
-CLIENT_BACKLOG_READINGS = (
-    2  # readings' messages the SDK queues per client before dropping the oldest
-)
 PRESSURE_IMAGE = "pressure_image"
 READING = "reading"
 
@@ -99,6 +97,12 @@ def require_foxglove() -> Any:
             "--foxglove needs the Foxglove SDK (the 'foxglove-sdk' package): "
             "pip install 'beadsight[ros]'"
         ) from None
+    try:
+        import websockets  # noqa: F401
+    except ImportError:
+        raise BeadSightError(
+            "--foxglove needs the 'websockets' package: pip install 'beadsight[ros]'"
+        ) from None
     return foxglove
 
 
@@ -114,24 +118,30 @@ def _timestamp(t_s: float) -> Any:
     return Timestamp(*msg.stamp(t_s))
 
 
-def _json_schema(fox: Any, name: str, schema: dict) -> Any:
-    return fox.Schema(name=name, encoding="jsonschema", data=json.dumps(schema).encode())
+def _channels(namespace: str) -> list[ChannelSpec]:
+    """The advertised channels, in the order of :data:`CAMERA_ID` ... :data:`HEALTH_ID`."""
+    from foxglove.messages import Grid, RawImage
+
+    def typed(name: str, message: Any) -> ChannelSpec:
+        schema = message.get_schema()
+        return ChannelSpec(
+            msg.topic(namespace, name), "protobuf", schema.name, schema.encoding, schema.data
+        )
+
+    def json_channel(name: str, schema_name: str, schema: dict) -> ChannelSpec:
+        text = json.dumps(schema).encode()
+        return ChannelSpec(msg.topic(namespace, name), "json", schema_name, "jsonschema", text)
+
+    return [
+        typed(msg.CAMERA, RawImage),
+        typed(msg.PRESSURE, Grid),
+        typed(PRESSURE_IMAGE, RawImage),
+        json_channel(READING, READING_SCHEMA_NAME, READING_SCHEMA),
+        json_channel(msg.HEALTH, HEALTH_SCHEMA_NAME, HEALTH_SCHEMA),
+    ]
 
 
-class _Subscriptions:
-    """A ``foxglove.ServerListener`` that counts the clients subscribed to each topic."""
-
-    def __init__(self):
-        self._lock = threading.Lock()
-        self.counts: dict[str, int] = {}
-
-    def on_subscribe(self, client: Any, channel: Any) -> None:
-        with self._lock:
-            self.counts[channel.topic] = self.counts.get(channel.topic, 0) + 1
-
-    def on_unsubscribe(self, client: Any, channel: Any) -> None:
-        with self._lock:
-            self.counts[channel.topic] = self.counts.get(channel.topic, 1) - 1
+CAMERA_ID, PRESSURE_ID, PRESSURE_IMAGE_ID, READING_ID, HEALTH_ID = range(1, 6)
 
 
 class FoxgloveServer(OutputListener):
@@ -140,9 +150,11 @@ class FoxgloveServer(OutputListener):
     geometry: the model's sensor geometry (map size and mm per pixel).
     host, port: where the server listens (port 0: any free port, see :attr:`port`).
     max_kpa: top of the colour scale of ``pressure_image``.
-    max_age_s, queue_size: the slow-client rule (:class:`~beadsight.live.outputs.base.OutputListener`);
-    beyond it, the SDK queues at most :data:`CLIENT_BACKLOG_READINGS` readings' messages
-    per client and drops the oldest.
+    max_age_s, queue_size: the slow-client rule (:class:`~beadsight.live.outputs.base.OutputListener`),
+    applied again per client when its turn comes (:mod:`~beadsight.live.outputs.foxglove_ws`:
+    one reading in flight per client).
+    allowed_origins: browser origins accepted beside local pages (``--foxglove-allow-origin``).
+    max_clients: clients served at once (``--foxglove-max-clients``).
     """
 
     name = "foxglove"
@@ -157,48 +169,31 @@ class FoxgloveServer(OutputListener):
         *,
         max_age_s: float = MAX_AGE_S,
         queue_size: int = DEFAULT_QUEUE_SIZE,
+        allowed_origins: tuple[str, ...] = (),
+        max_clients: int = MAX_CLIENTS,
     ):
-        fox = require_foxglove()
-        from foxglove.channels import GridChannel, RawImageChannel
+        require_foxglove()
         from foxglove.messages import PackedElementField, PackedElementFieldNumericType
 
         _check(port, max_kpa, namespace)
+        check_count(max_clients, "Foxglove max_clients")
         self.geometry, self.max_kpa = geometry, max_kpa
         self._lut_rgb = colormap_bgr()[:, ::-1].copy()
         self._field = PackedElementField(
             name="pressure_kpa", offset=0, type=PackedElementFieldNumericType.Float32
         )
-        self._context = fox.Context()
-        self._subscriptions = _Subscriptions()
-        try:
-            self._server = fox.start_server(
-                name="beadsight",
-                host=host,
-                port=port,
-                context=self._context,
-                server_listener=self._subscriptions,
-                message_backlog_size=MESSAGES_PER_READING * CLIENT_BACKLOG_READINGS,
-            )
-        except Exception as e:
-            raise BeadSightError(f"Foxglove server on {host}:{port}: {e}") from e
+        self._channels = _channels(namespace)
+        self._server = FoxgloveWebSocket(
+            "beadsight",
+            host,
+            port,
+            self._channels,
+            allowed_origins=allowed_origins,
+            max_clients=max_clients,
+            max_age_s=max_age_s,
+        )
         self.host, self.port = host, self._server.port
         self._status_shown = False  # a poor-health status is up in the clients
-        ctx, topic = self._context, lambda name: msg.topic(namespace, name)
-        self._camera = RawImageChannel(topic(msg.CAMERA), context=ctx)
-        self._pressure = GridChannel(topic(msg.PRESSURE), context=ctx)
-        self._pressure_image = RawImageChannel(topic(PRESSURE_IMAGE), context=ctx)
-        self._reading = fox.Channel(
-            topic(READING),
-            schema=_json_schema(fox, READING_SCHEMA_NAME, READING_SCHEMA),
-            message_encoding="json",
-            context=ctx,
-        )
-        self._health_channel = fox.Channel(
-            topic(msg.HEALTH),
-            schema=_json_schema(fox, HEALTH_SCHEMA_NAME, HEALTH_SCHEMA),
-            message_encoding="json",
-            context=ctx,
-        )
         super().__init__(max_age_s=max_age_s, queue_size=queue_size)
 
     @property
@@ -206,21 +201,21 @@ class FoxgloveServer(OutputListener):
         return f"ws://{self.host}:{self.port}"
 
     def topics(self) -> list[str]:
-        return [
-            c.topic()
-            for c in (
-                self._camera,
-                self._pressure,
-                self._pressure_image,
-                self._reading,
-                self._health_channel,
-            )
-        ]
+        return [c.topic for c in self._channels]
 
     def subscribers(self) -> dict[str, int]:
         """Topic -> how many clients are subscribed to it now."""
-        with self._subscriptions._lock:
-            return {t: self._subscriptions.counts.get(t, 0) for t in self.topics()}
+        return self._server.subscribers()
+
+    def clients(self) -> int:
+        """Clients connected now."""
+        return self._server.clients()
+
+    @property
+    def client_skipped(self) -> int:
+        """Readings not sent to a client because it had not read the one before (summed
+        over the clients), or that were too old when its turn came."""
+        return self._server.skipped()
 
     def _raw_image(self, rgb: np.ndarray, t_s: float) -> Any:
         from foxglove.messages import RawImage
@@ -263,10 +258,7 @@ class FoxgloveServer(OutputListener):
         r = update.reading
         t = float(r.timestamp_s)
         t_ns = msg.unix_ns(t)
-        self._camera.log(self._raw_image(update.frame_rgb, t), log_time=t_ns)
-        self._pressure.log(self._grid(r.pressure_kpa, t), log_time=t_ns)
         index = colour_indices(r.pressure_kpa, self.max_kpa, len(self._lut_rgb))
-        self._pressure_image.log(self._raw_image(self._lut_rgb[index], t), log_time=t_ns)
         cop = np.asarray(r.cop_mm, dtype=float).reshape(2)
         reading = {
             "timestamp_s": t,
@@ -280,17 +272,20 @@ class FoxgloveServer(OutputListener):
             "has_contact": bool(r.has_contact),
             "reference_force_n": msg.finite_or_none(update.reference_force_n),
         }
-        self._reading.log(reading, log_time=t_ns)
+        messages = [
+            (CAMERA_ID, t_ns, self._raw_image(update.frame_rgb, t).encode()),
+            (PRESSURE_ID, t_ns, self._grid(r.pressure_kpa, t).encode()),
+            (PRESSURE_IMAGE_ID, t_ns, self._raw_image(self._lut_rgb[index], t).encode()),
+            (READING_ID, t_ns, json.dumps(reading).encode()),
+        ]
+        self._server.log_reading(self.arrived_s, messages)
 
     def publish_health(self, report: dict[str, Any]) -> None:
         """The report on ``/beadsight/health``; poor health also shows as a problem in the
         Foxglove app (warning: drifting, error: recalibrate)."""
-        from foxglove import StatusLevel
-
-        self._health_channel.log(report, log_time=msg.unix_ns(report["timestamp_s"]))
-        level = {"drifting": StatusLevel.Warning, "recalibrate": StatusLevel.Error}.get(
-            report["state"]
-        )
+        t_ns = msg.unix_ns(report["timestamp_s"])
+        self._server.log(HEALTH_ID, t_ns, json.dumps(report).encode())
+        level = {"drifting": "warning", "recalibrate": "error"}.get(report["state"])
         if level is not None:
             text = f"beadsight health: {report['state']}. {report['message']}".strip()
             self._server.publish_status(text, level, HEALTH_STATUS_ID)
