@@ -87,7 +87,7 @@ def training_curve_figure(curve: TrainingCurve) -> Figure:
     right: the validation MAE (kPa) against the step, its lowest circled."""
     fig = new_figure(8.0, 3.2)
     left, right = fig.subplots(1, 2)
-    fig.subplots_adjust(left=0.09, right=0.98, bottom=0.16, top=0.88, wspace=0.3)
+    fig.subplots_adjust(left=0.11, right=0.98, bottom=0.16, top=0.9, wspace=0.32)
     if curve.train_step.size:
         left.plot(curve.train_step, curve.train_loss, "-", color="tab:blue", label="training")
     finite = np.isfinite(curve.val_loss)
@@ -103,7 +103,7 @@ def training_curve_figure(curve: TrainingCurve) -> Figure:
     if (curve.train_loss > 0).all() and (curve.val_loss[finite] > 0).all():
         left.set_yscale("log")
     left.set_xlabel("optimizer step")
-    left.set_ylabel("loss (MSE of normalised maps)")
+    left.set_ylabel("loss (MSE, kPa / output scale)")
     left.legend(fontsize=7)
     left.grid(alpha=0.3)
     mae = np.isfinite(curve.val_mae_kpa)
@@ -138,5 +138,6 @@ def training_curve_caption() -> str:
         "Left: the training loss (blue, the mean since the previous point) and the validation "
         "loss (red dots) against the optimizer step, on a log scale; a validation loss rising "
         "while the training loss falls is overfitting. Right: the validation pressure MAE "
-        "(kPa) at each validation; the black circle marks the lowest, the step best.pt keeps."
+        "(kPa) at each validation; the black circle marks the lowest (best.pt keeps the step "
+        "of lowest validation loss, usually the same)."
     )
