@@ -21,6 +21,9 @@ REPORT_FILES = (
     "examples.png",
     "force_traces.png",
     "region_error.png",
+    "force_scatter.png",
+    "force_error.png",
+    "presses.csv",
 )
 
 
@@ -43,14 +46,18 @@ def test_demo_with_a_checkpoint(tmp_path, tiny_model, capsys):
     assert "0.790" in printed  # the paper's MAE beside this run's
     for name in REPORT_FILES:
         assert (out / name).is_file(), name
-    assert not (out / "heldout.h5").exists()  # the simulated data is temporary
+    # the held-out data the log, metrics.json and the page name is kept, and linked
+    assert (out / "heldout.h5").is_file()
     summary = json.loads((out / "demo.json").read_text())
     assert summary["seed"] == 90_210 and summary["frames_evaluated"] == 24
     assert summary["sim_config"]["image_size_px"] == 64  # the model's size
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 24 and "baselines" in metrics
+    assert metrics["dataset"] == str(out / "heldout.h5")
+    assert len(metrics["per_press"]) == 2 and sum(r["frames"] for r in metrics["per_press"]) == 24
     html = (out / "index.html").read_text()
     assert "animation.gif" in html and "pressure MAE" in html
+    assert 'href="heldout.h5"' in html and "Per press" in html
     # Running again into the same report folder replaces it.
     again = [
         "demo",
@@ -64,11 +71,11 @@ def test_demo_with_a_checkpoint(tmp_path, tiny_model, capsys):
         "4",
         "--animation-frames",
         "2",
-        "--keep-data",
+        "--no-keep-data",
         "--no-progress",
     ]
     assert main(again) == 0
-    assert (out / "heldout.h5").is_file()
+    assert not (out / "heldout.h5").exists()  # --no-keep-data deletes it
     assert json.loads((out / "demo.json").read_text())["frames_evaluated"] == 4
 
 
@@ -127,7 +134,10 @@ def test_demo_train_from_scratch(tmp_path, capsys):
     assert estimate["measured_steps"] == 3 and estimate["planned_steps"] > 10_000
     assert estimate["reference_size_hours"] > 0
     assert (out / "run" / "best.pt").is_file() and (out / "animation.gif").is_file()
-    # The training data is deleted, but the checkpoint still names its simulation.
-    assert not (out / "train.h5").exists()
+    # The training data is kept; the report draws the run's learning curve (3 logged steps).
+    assert (out / "train.h5").is_file() and (out / "heldout.h5").is_file()
+    assert summary["files"]["training_curve"] == "training_curve.png"
+    assert (out / "training_curve.png").stat().st_size > 0
+    assert "Learning curve of the training run" in (out / "index.html").read_text()
     seeds, trained_on = training_simulation(load_checkpoint(out / "run" / "best.pt"))
     assert seeds == {TRAIN_DEMO_SEED} and trained_on["image_size_px"] == 32

@@ -38,7 +38,6 @@ ORDER = (
     "sim",
     "data",
     "assets",
-    "reference_checkpoint",
     "checkpoint",
     "model",
     "preprocess",

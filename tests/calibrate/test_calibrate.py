@@ -48,6 +48,8 @@ def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     assert "zero-shot" in printed and "calibrated" in printed and "report.html" in printed
     for name in ("model.pt", "aligned.pt", "metrics.json", "report.html", "learning_curve.png"):
         assert (out / name).is_file(), name
+    for name in ("presses.csv", "force_scatter.png", "force_error.png", "training_curve.png"):
+        assert (out / name).is_file(), name  # the fine-tuning's curve: 2+ validations
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics["stages"]) == {"zero_shot", "aligned", "calibrated"}
     assert metrics["split"] == "held-out" and metrics["presses"] == 1

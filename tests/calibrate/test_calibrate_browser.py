@@ -15,7 +15,15 @@ pytestmark = [
     pytest.mark.browser,
     pytest.mark.skipif(not CHROMIUM.exists(), reason="chromium is not installed"),
 ]
-FIGURES = ["examples.png", "force_traces.png", "region_error.png", "learning_curve.png"]
+FIGURES = [
+    "examples.png",
+    "force_traces.png",
+    "force_scatter.png",
+    "force_error.png",
+    "region_error.png",
+    "training_curve.png",  # the fine-tuning validates at its start and its end: 2+ points
+    "learning_curve.png",
+]
 
 
 def test_calibration_report_in_chromium(make_dataset, tiny_model, tmp_path):
@@ -51,6 +59,10 @@ def test_calibration_report_in_chromium(make_dataset, tiny_model, tmp_path):
         assert all(done and w > 0 for done, w in sizes), sizes
         captions = page.locator("figure figcaption").all_inner_texts()
         assert len(captions) == len(FIGURES) and all(len(c) > 150 for c in captions)
+        assert "optimizer step" in captions[FIGURES.index("training_curve.png")]
+        # the test presses, one row each, worst force error first
+        rows = page.locator("table.rows tbody tr")
+        assert rows.count() == len((out / "presses.csv").read_text().splitlines()) - 1 >= 1
         links = page.locator("ul.files a").evaluate_all("as => as.map(a => a.getAttribute('href'))")
         assert {"metrics.json", "model.pt", "predictions.h5"} <= set(links)
         assert all((out / href).is_file() for href in links), links

@@ -187,6 +187,8 @@ def test_evaluate_writes_the_report(make_dataset, tiny_model, tmp_path):
     assert [img["src"] for img in page.all("img")] == [
         "examples.png",
         "force_traces.png",
+        "force_scatter.png",
+        "force_error.png",
         "region_error.png",
     ]
     captions = "".join(page.text["figcaption"])

@@ -24,6 +24,29 @@ PAPER_ROWS = (
     "contact IoU (0..1)",
     "worst 4x4 region MAE (kPa)",
 )
+EVALUATION_FIGURES = [
+    "examples.png",
+    "force_traces.png",
+    "force_scatter.png",
+    "force_error.png",
+    "region_error.png",
+]
+HOW_TO_READ = {  # a figure's caption says how to read it
+    "force_scatter.png": "y = x",
+    "force_error.png": "n above each bar",
+    "region_error.png": "not an error of 0",
+}
+PRESS_HEADINGS = [
+    "press",
+    "frames",
+    "x (mm)",
+    "y (mm)",
+    "peak true force (N)",
+    "force error (%)",
+    "CoP error (mm)",
+    "contact IoU",
+    "MAE (kPa)",
+]
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +76,6 @@ def reports(shipped, tmp_path_factory):
         "90",
         "--animation-frames",
         "16",
-        "--keep-data",
         "--device",
         "cpu",
         "--no-progress",
@@ -94,8 +116,8 @@ def browser():
 @pytest.mark.parametrize(
     "kind, figures",
     [
-        ("demo", ["animation.gif", "examples.png", "force_traces.png", "region_error.png"]),
-        ("evaluate", ["examples.png", "force_traces.png", "region_error.png"]),
+        ("demo", ["animation.gif", *EVALUATION_FIGURES]),
+        ("evaluate", EVALUATION_FIGURES),
     ],
 )
 def test_report_in_chromium(reports, browser, kind, figures):
@@ -128,6 +150,20 @@ def test_report_in_chromium(reports, browser, kind, figures):
     assert len(captions) == len(figures)
     assert all(text.startswith("Figure ") and len(text) > 150 for text in captions), captions
     assert all("kPa" in text or "(N" in text for text in captions)
+    for file, words in HOW_TO_READ.items():
+        assert words in captions[figures.index(file)], (file, captions[figures.index(file)])
+    # the per-press table: every press, worst force error first, the same rows as the CSV
+    presses = page.locator("table.rows")
+    assert presses.locator("thead th").all_inner_texts() == PRESS_HEADINGS
+    assert "worst first" in presses.locator("caption").inner_text()
+    rows = presses.locator("tbody tr")
+    csv_rows = (folder / "presses.csv").read_text().splitlines()[1:]
+    assert rows.count() == len(csv_rows) == 3
+    cells = presses.locator('td[data-key="force_error_pct"]').all_inner_texts()
+    force_errors = [float(t) for t in cells]
+    assert force_errors == sorted(force_errors, reverse=True)
+    first = rows.nth(0).locator("td").all_inner_texts()
+    assert first[0] == csv_rows[0].split(",")[0]  # the same press first
     # the model card: after the figures, folded, and rendered from Markdown when opened
     card = page.locator("details")
     assert card.count() == 1 and not card.evaluate("d => d.open")

@@ -1,6 +1,7 @@
 """The files a calibration leaves besides ``model.pt``: ``metrics.json`` (the calibrated
 model's metrics on the test presses, the base model's zero-shot and aligned ones, and the
-calibration record), ``learning_curve.png`` and ``report.html``, a page built by the one
+calibration record), ``learning_curve.png``, ``training_curve.png`` (the fine-tuning's
+losses and MAE by step, where it validated twice or more) and ``report.html``, a page built by the one
 report builder (:mod:`beadsight.report.page`)."""
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from beadsight.calibrate.config import (
     REPORT_FILE,
     TRAIN_FOLDER,
 )
+from beadsight.evaluation.breakdown import TRAINING_PLOT
 from beadsight.evaluation.evaluate import write_metrics_json
 from beadsight.report.page import (
     Figure,
@@ -25,6 +27,7 @@ from beadsight.report.page import (
     evaluation_figures,
     evaluation_links,
     evaluation_summary,
+    press_tables,
     write_report,
 )
 from beadsight.report.paper import PAPER_METRICS
@@ -33,6 +36,7 @@ from beadsight.report.plots import (
     learning_curve_caption,
     plot_learning_curve,
 )
+from beadsight.report.training import write_training_curve
 from beadsight.train.run import METRICS_FILE as TRAIN_METRICS
 
 STAGE_NAMES = {"zero_shot": "base model, zero-shot", "aligned": "alignment only"}
@@ -82,6 +86,8 @@ def write_outputs(out: Path, final: dict, stages: dict, record: dict) -> dict:
     }
     if record["fine_tuning"]:
         files["train"] = f"{TRAIN_FOLDER}/{TRAIN_METRICS}"
+    if write_training_curve(out / TRAIN_FOLDER / TRAIN_METRICS, out / TRAINING_PLOT):
+        files["training_curve"] = TRAINING_PLOT  # the fine-tuning's loss and MAE by step
     metrics = {
         **final,
         "files": files,
@@ -133,5 +139,6 @@ def calibration_report(metrics: dict, record: dict, files: dict) -> Report:
         baselines={STAGE_NAMES[k]: v for k, v in metrics["stages"].items() if k in STAGE_NAMES},
         notes=notes,
         figures=figures,
+        tables=press_tables(metrics),
         files=evaluation_links({k: v for k, v in files.items() if k != "report"}, DESCRIPTIONS),
     )

@@ -26,7 +26,7 @@ DEMO_FLAGS = (
     ("max_frames", "frames evaluated, spread evenly (0: all)"),
     ("batch_size", "frames per batch"),
     ("device", "auto, cpu, cuda, ..."),
-    ("keep_data", "keep the simulated dataset(s)"),
+    ("keep_data", "delete the simulated datasets (heldout.h5, train.h5) when done"),
     ("animation_frames", "consecutive frames in animation.gif"),
     ("progress", "no progress bars"),
     ("train", "train a small model from scratch first"),

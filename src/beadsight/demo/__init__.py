@@ -5,8 +5,10 @@ the model's image size, runs the model over them, scores it with
 :func:`beadsight.evaluation.evaluate.evaluate` (with the all-zero and mean-label
 baselines), and writes a report folder:
 
-* ``metrics.json``, ``predictions.h5`` and the evaluation plots
-  (``examples.png``, ``region_error.png``, ``force_traces.png``);
+* ``heldout.h5``: the simulated held-out presses (``--no-keep-data`` deletes it);
+* ``metrics.json``, ``predictions.h5``, ``presses.csv`` (per press, worst first) and the
+  evaluation plots (``examples.png``, ``force_scatter.png``, ``force_error.png``,
+  ``force_traces.png``, ``region_error.png``; ``training_curve.png`` after ``--train``);
 * ``animation.gif``: one press, camera frame | true map | predicted map;
 * ``demo.json`` (what was run, seeds, timings) and ``index.html`` (the report).
 

@@ -22,6 +22,7 @@ from beadsight.report.page import (
     evaluation_figures,
     evaluation_links,
     model_card_for,
+    press_tables,
 )
 from beadsight.sim.config import SimConfig
 
@@ -115,6 +116,7 @@ def demo_report(summary: dict, metrics: dict, sim_config: SimConfig, colour_max:
         baselines=metrics.get("baselines") or {},
         notes=summary["notes"],
         figures=[animation, *evaluation_figures(files, metrics, sim_config.geometry)],
+        tables=press_tables(metrics),
         model_card=model_card_for(summary["checkpoint"]),
         model_card_title=f"Model card ({Path(summary['checkpoint']).with_suffix('.md').name})",
         files=evaluation_links(files, descriptions),

@@ -18,14 +18,18 @@ them, and each input gets it by training's rule (:mod:`beadsight.data.rest`, rea
   (NaN where that map has no positive pressure), ``index`` (N,) dataset frame
   index, appended batch by batch under a temporary name (attribute ``rest_source``:
   ``"dataset"`` for a rest-referenced model, else ``"none"``);
-* ``examples.png``, ``region_error.png``, ``force_traces.png``;
+* ``examples.png``, ``region_error.png``, ``force_traces.png``, and the breakdown of
+  :mod:`beadsight.evaluation.breakdown`: ``presses.csv`` (per press, worst first; also
+  ``per_press`` in metrics.json), ``force_scatter.png``, ``force_error.png`` and, for a
+  checkpoint in its training run folder, ``training_curve.png``;
 * ``index.html``: the report page (:mod:`beadsight.report.page`).
 
 A write that fails (disk full) raises :class:`beadsight.files.WriteError`; no file
 is left damaged under its final name (``predictions.h5`` is written as
 ``predictions.h5.partial`` and removed on failure).
 
-Memory stays bounded by the batch size whatever the dataset's length. Which
+Memory stays bounded by the batch size whatever the dataset's length, but for 16 bytes
+a frame (the forces of the scatter) and one row per press. Which
 presses or frames form a split: :mod:`beadsight.evaluation.selection`.
 """
 
@@ -46,6 +50,7 @@ from beadsight.config import SensorGeometry
 from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.windows import WindowReader
+from beadsight.evaluation.breakdown import Breakdown, write_breakdown_files
 from beadsight.evaluation.config import DEFAULT_DEVICE, DEFAULT_SPLIT
 from beadsight.evaluation.config import EVALUATE_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.evaluation.metrics import FrameMetrics, MetricsAccumulator
@@ -104,6 +109,9 @@ DEFINITIONS = {
     "for hard-edged labels) on frames with F_gt >= 2 N; empty prediction -> 0",
     "region_mae_kpa": "per-frame MAE of all evaluated frames grouped by their press's commanded position on "
     "a 4x4 grid of the field of view; [row][col] in image orientation; null = no frames",
+    "per_press": "the metrics above on each press's evaluated frames, worst force error first",
+    "force_error_by_force": "force error (as above) and mean |F_pred - F_gt| (N) in equal bins "
+    "of F_gt over frames with F_gt > 0; null = no frames in the bin",
 }
 
 
@@ -193,6 +201,7 @@ class _Collected:
     trace_presses: np.ndarray
     examples: dict
     trace_rows: list
+    breakdown: Breakdown  # per press, and each frame's forces
 
 
 def _collect(col: _Collected, ds: Dataset, batch: np.ndarray, pred, gt, fm: FrameMetrics) -> None:
@@ -202,6 +211,7 @@ def _collect(col: _Collected, ds: Dataset, batch: np.ndarray, pred, gt, fm: Fram
         col.trace_rows.append(
             (int(batch[k]), int(ds.press_id[batch[k]]), fm.force_gt_n[k], fm.force_pred_n[k])
         )
+    col.breakdown.add(fm, ds.press_id[batch], ds.position_mm[batch])
 
 
 def evaluate(
@@ -268,6 +278,7 @@ def evaluate(
         base_maps = run.baseline_maps(selection, ends) if baselines else {}
         accs, col = run.loop(ends, base_maps, out, selection, progress)
         metrics = _assemble(accs, model, ds, selection, ends, max_frames)
+        metrics.update(col.breakdown.result())
         metrics.update(covered)
         if out is not None:
             metrics["files"] = {"metrics": METRICS_FILE, "predictions": PREDICTIONS_FILE}
@@ -314,7 +325,8 @@ class _Run:
         ds, model = self.ds, self.model
         accs = {name: MetricsAccumulator(self.geometry) for name in ("model", *base_maps)}
         examples = _example_frames(ds, ends, EXAMPLE_PRESSES)
-        col = _Collected(examples, ds.press_id[examples[:TRACE_PRESSES]], {}, [])
+        trace = ds.press_id[examples[:TRACE_PRESSES]]
+        col = _Collected(examples, trace, {}, [], Breakdown(self.geometry))
         reader = WindowReader(ds, model.span, self.geometry.image_size_px, bool(model.rest))
         with ExitStack() as stack:
             writer = None
@@ -434,7 +446,7 @@ def _write_plots(
             traces.append(ForceTrace(f"press {p}", t - t[0], r[:, 2], r[:, 3]))
         plot_force_traces(traces, out / FORCE_PLOT)
         files["force_traces"] = FORCE_PLOT
-    return files
+    return files | write_breakdown_files(out, col.breakdown, metrics)
 
 
 def write_metrics_json(metrics: dict, path: str | Path) -> Path:

@@ -9,6 +9,8 @@
   (:func:`beadsight.report.paper.compare_with_paper`);
 * notes, then the figures (animation, plots), each with a caption saying what it shows and
   how to read it;
+* tables of rows (the per-press metrics, worst first; the page runs no script, so the
+  order is fixed: the same rows are a CSV file beside it, for sorting elsewhere);
 * an optional model card, Markdown rendered by markdown-it-py, after the results and folded;
 * links to the raw files (``metrics.json``, ``predictions.h5``, plots).
 
@@ -36,12 +38,14 @@ from urllib.parse import quote
 from beadsight import __version__
 from beadsight.config import SensorGeometry
 from beadsight.files import atomic_write_text
+from beadsight.report.force_plots import force_error_caption, force_scatter_caption
 from beadsight.report.paper import PAPER_METRICS, REGION_GRID, TABLE_ROWS, compare_with_paper
 from beadsight.report.plots import (
     examples_caption,
     force_traces_caption,
     region_error_caption,
 )
+from beadsight.report.training import training_curve_caption
 
 REPORT_FILE = "index.html"
 TEMPLATE = "page.html"  # package file beside this module
@@ -56,6 +60,17 @@ class Figure:
     file: str  # path relative to the report folder
     title: str
     caption: str  # what it shows and how to read it: axes, units, colour scale
+
+
+@dataclass(frozen=True)
+class Table:
+    """A table of rows (dicts) under a title and a caption, in the order given."""
+
+    id: str  # the HTML id of its section
+    title: str
+    caption: str  # what it shows and how to read it
+    columns: Sequence[tuple[str, str, str]]  # (key, heading with unit, format)
+    rows: Sequence[Mapping]
 
 
 @dataclass(frozen=True)
@@ -83,6 +98,7 @@ class Report:
     rows: Sequence[tuple[str, str, str]] = TABLE_ROWS
     notes: Sequence[str] = ()
     figures: Sequence[Figure] = ()
+    tables: Sequence[Table] = ()
     model_card: str | None = None  # Markdown
     model_card_title: str = "Model card"
     files: Sequence[Link] = ()
@@ -171,6 +187,26 @@ def _figure(n: int, fig: Figure) -> str:
     )
 
 
+def render_table(table: Table) -> str:
+    """A :class:`Table` as an HTML table, in a box that scrolls when it is long."""
+    head = "".join(
+        f'<th scope="col" data-key="{_e(key)}">{_e(label)}</th>' for key, label, _ in table.columns
+    )
+    body = []
+    for row in table.rows:
+        cells = "".join(
+            f'<td data-key="{_e(key)}">{_e(_cell(row.get(key), fmt))}</td>'
+            for key, _, fmt in table.columns
+        )
+        body.append(f"<tr>{cells}</tr>")
+    return (
+        f'<h2 id="{_e(table.id)}">{_e(table.title)}</h2>'
+        f'<div class="scroll"><table class="rows" id="{_e(table.id)}-table">'
+        f"<caption>{_e(table.caption)}</caption><thead><tr>{head}</tr></thead>"
+        f"<tbody>{''.join(body)}</tbody></table></div>"
+    )
+
+
 def _size(path: Path) -> str:
     if not path.is_file():
         return ""
@@ -208,6 +244,7 @@ def render_report(report: Report, folder: Path | None = None) -> str:
     if report.figures:
         parts.append('<h2 id="figures">Figures</h2>')
         parts += [_figure(n, fig) for n, fig in enumerate(report.figures, start=1)]
+    parts += [render_table(table) for table in report.tables]
     if report.model_card:
         parts += [
             '<h2 id="model">The model</h2>',
@@ -253,7 +290,10 @@ def evaluation_figures(
     known = {
         "examples": ("True and predicted pressure maps", examples_caption()),
         "force_traces": ("Total force over time", force_traces_caption()),
+        "force_scatter": ("Predicted against true force", force_scatter_caption()),
+        "force_error": ("Force error against force", force_error_caption()),
         "region_error": ("Error by press location", region_error_caption(grid, cell_mm)),
+        "training_curve": ("Learning curve of the training run", training_curve_caption()),
     }
     return [Figure(files[k], title, text) for k, (title, text) in known.items() if k in files]
 
@@ -265,7 +305,37 @@ FILE_DESCRIPTIONS = {
     "examples": "example maps (PNG)",
     "region_error": "error by press location (PNG)",
     "force_traces": "force over time (PNG)",
+    "force_scatter": "predicted against true force (PNG)",
+    "force_error": "force error against force (PNG; the numbers: force_error_by_force in "
+    "metrics.json)",
+    "training_curve": "the learning curve of the checkpoint's training run (PNG)",
+    "presses": "the metrics of each press, worst first (CSV; also per_press in metrics.json)",
 }
+PRESS_TABLE_COLUMNS = (
+    ("press", "press", "{:d}"),
+    ("frames", "frames", "{:d}"),
+    ("x_mm", "x (mm)", "{:.1f}"),
+    ("y_mm", "y (mm)", "{:.1f}"),
+    ("peak_force_n", "peak true force (N)", "{:.2f}"),
+    ("force_error_pct", "force error (%)", "{:.1f}"),
+    ("cop_error_mm", "CoP error (mm)", "{:.2f}"),
+    ("iou", "contact IoU", "{:.3f}"),
+    ("mae_kpa", "MAE (kPa)", "{:.3f}"),
+)
+
+
+def press_tables(metrics: Mapping) -> list[Table]:
+    """The per-press table of an evaluation's metrics (its ``per_press`` rows), or none."""
+    rows = metrics.get("per_press")
+    if not rows:
+        return []
+    caption = (
+        "The table's metrics on each press's evaluated frames, worst first (highest total-force "
+        "error). x, y: where the press was (mm, printer frame); CoP error and IoU count frames "
+        "with at least 2 N of true force (n/a: none). To sort by another column, open "
+        "presses.csv (the same rows; also per_press in metrics.json) in a spreadsheet."
+    )
+    return [Table("presses", "Per press", caption, PRESS_TABLE_COLUMNS, rows)]
 
 
 def evaluation_links(
@@ -335,6 +405,7 @@ def evaluation_report(
         metrics=metrics,
         baselines=metrics.get("baselines") or {},
         figures=evaluation_figures(files, metrics, geometry),
+        tables=press_tables(metrics),
         model_card=card,
         model_card_title=f"Model card ({Path(str(checkpoint)).with_suffix(MODEL_CARD_SUFFIX).name})",
         files=evaluation_links(files),

@@ -13,9 +13,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch, Rectangle
 
 from beadsight.config import SensorGeometry
 from beadsight.files import atomic_write
@@ -23,18 +25,20 @@ from beadsight.files import atomic_write
 DPI = 110
 PANEL_IN = 2.6  # side of one map panel, inches
 PRESSURE_CMAP = "viridis"
-ERROR_CMAP = "magma"
+ERROR_CMAP = "YlOrRd"  # pale yellow = low error, dark red = high: 0 is not black
+NO_DATA_COLOUR = "0.85"  # cells without frames: light grey, hatched
+NO_DATA_HATCH = "///"
 MIN_COLOUR_RANGE_KPA = 1e-3  # colour scale floor, so all-zero maps still draw
 
 
-def _new_figure(width_in: float, height_in: float) -> Figure:
+def new_figure(width_in: float, height_in: float) -> Figure:
     # Fixed margins: matplotlib's constrained layout costs seconds per figure.
     fig = Figure(figsize=(width_in, height_in), dpi=DPI)
     FigureCanvasAgg(fig)
     return fig
 
 
-def _save(fig: Figure, path: str | Path) -> Path:
+def save_figure(fig: Figure, path: str | Path) -> Path:
     return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=DPI))
 
 
@@ -63,7 +67,7 @@ def plot_examples(
             f"{pred_kpa.shape}, {len(titles)} titles"
         )
     vmax = max(float(gt_kpa.max()), float(pred_kpa.max()), MIN_COLOUR_RANGE_KPA)
-    fig = _new_figure(PANEL_IN * k + 1.0, PANEL_IN * 2 + 0.4)
+    fig = new_figure(PANEL_IN * k + 1.0, PANEL_IN * 2 + 0.4)
     axes = fig.subplots(2, k, squeeze=False)
     fig.subplots_adjust(
         left=0.6 / (PANEL_IN * k + 1.0), right=0.97, bottom=0.1, top=0.93, wspace=0.3, hspace=0.3
@@ -81,7 +85,88 @@ def plot_examples(
             if i == 1:
                 ax.set_xlabel("x (mm)", fontsize=8)
     fig.colorbar(image, ax=axes, shrink=0.8, fraction=0.3 / k, pad=0.02, label="pressure (kPa)")
-    return _save(fig, path)
+    return save_figure(fig, path)
+
+
+def region_values(region_mae_kpa: Sequence[Sequence[float | None]]) -> np.ma.MaskedArray:
+    """The grid of per-region MAE (kPa) behind the region map: a masked float array whose
+    cells without frames (None) are NaN and masked; every number, 0 included, is kept."""
+    values = np.array(
+        [[np.nan if v is None else float(v) for v in row] for row in region_mae_kpa], float
+    )
+    return np.ma.masked_invalid(values)
+
+
+def _cell_text(value: float) -> str:
+    """A cell's MAE with 3 significant digits, so a small error never prints as 0.00."""
+    return "0" if value == 0 else f"{value:.3g}"
+
+
+def region_error_figure(
+    region_mae_kpa: Sequence[Sequence[float | None]],
+    region_frames: Sequence[Sequence[int]],
+    geometry: SensorGeometry,
+) -> Figure:
+    """The grid of per-region MAE (kPa), annotated with values and frame counts.
+
+    Cells with frames take their colour from the scale (0 kPa pale, the worst cell dark
+    red); cells without frames are masked (NaN), drawn hatched grey and named in the legend.
+    Orientation matches the pressure maps.
+    """
+    values = region_values(region_mae_kpa)
+    counts = np.asarray(region_frames, dtype=np.int64)
+    grid = values.shape[0]
+    fig = new_figure(4.8, 4.3)
+    ax = fig.subplots()
+    fig.subplots_adjust(left=0.14, right=0.95, bottom=0.2, top=0.92)
+    vmax = max(float(values.max()) if values.count() else 0.0, MIN_COLOUR_RANGE_KPA)
+    extent = _extent_mm(geometry)
+    cmap = matplotlib.colormaps[ERROR_CMAP].with_extremes(bad=NO_DATA_COLOUR)
+    image = ax.imshow(values, cmap=cmap, vmin=0.0, vmax=vmax, extent=extent)
+    cell_mm = geometry.sensor_size_mm / grid
+    half = geometry.sensor_size_mm / 2
+    for i in range(grid):
+        for j in range(grid):
+            x = half - (j + 0.5) * cell_mm
+            y = half - (i + 0.5) * cell_mm
+            if values.mask[i, j]:
+                corner = (x - cell_mm / 2, y - cell_mm / 2)
+                ax.add_patch(
+                    Rectangle(
+                        corner,
+                        cell_mm,
+                        cell_mm,
+                        fill=False,
+                        hatch=NO_DATA_HATCH,
+                        edgecolor="0.55",
+                        linewidth=0,
+                    )
+                )
+                text, colour = "no frames", "black"
+            else:
+                text = _cell_text(float(values[i, j]))
+                colour = "white" if values[i, j] > 0.6 * vmax else "black"
+            ax.text(
+                x,
+                y,
+                f"{text}\nn={counts[i, j]}",
+                ha="center",
+                va="center",
+                fontsize=7,
+                color=colour,
+            )
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(f"MAE by press location ({cell_mm:g} mm cells)", fontsize=9)
+    no_data = Patch(
+        facecolor=NO_DATA_COLOUR,
+        hatch=NO_DATA_HATCH,
+        edgecolor="0.55",
+        label="no frames (no press here): not 0",
+    )
+    fig.legend(handles=[no_data], loc="lower left", fontsize=7, frameon=False)
+    fig.colorbar(image, ax=ax, label="MAE (kPa)")
+    return fig
 
 
 def plot_region_errors(
@@ -90,51 +175,8 @@ def plot_region_errors(
     geometry: SensorGeometry,
     path: str | Path,
 ) -> Path:
-    """The grid of per-region MAE (kPa), annotated with values and frame counts.
-
-    Cells without frames (None) are grey. Orientation matches the pressure maps.
-    """
-    values = np.array(
-        [[np.nan if v is None else float(v) for v in row] for row in region_mae_kpa], float
-    )
-    counts = np.asarray(region_frames, dtype=np.int64)
-    grid = values.shape[0]
-    fig = _new_figure(4.8, 4.0)
-    ax = fig.subplots()
-    fig.subplots_adjust(left=0.14, right=0.95, bottom=0.12, top=0.92)
-    ax.set_facecolor("0.8")
-    finite = values[np.isfinite(values)]
-    vmax = max(float(finite.max()) if finite.size else 0.0, MIN_COLOUR_RANGE_KPA)
-    image = ax.imshow(
-        np.ma.masked_invalid(values),
-        cmap=ERROR_CMAP,
-        vmin=0.0,
-        vmax=vmax,
-        extent=_extent_mm(geometry),
-    )
-    cell_mm = geometry.sensor_size_mm / grid
-    half = geometry.sensor_size_mm / 2
-    for i in range(grid):
-        for j in range(grid):
-            x = half - (j + 0.5) * cell_mm
-            y = half - (i + 0.5) * cell_mm
-            text = "no frames" if not np.isfinite(values[i, j]) else f"{values[i, j]:.2f}"
-            ax.text(
-                x,
-                y,
-                f"{text}\nn={counts[i, j]}",
-                ha="center",
-                va="center",
-                fontsize=7,
-                color="black"
-                if not np.isfinite(values[i, j]) or values[i, j] > vmax / 2
-                else "white",
-            )
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_title(f"MAE by press location ({cell_mm:g} mm cells)", fontsize=9)
-    fig.colorbar(image, ax=ax, label="MAE (kPa)")
-    return _save(fig, path)
+    """Write :func:`region_error_figure` to ``path``."""
+    return save_figure(region_error_figure(region_mae_kpa, region_frames, geometry), path)
 
 
 @dataclass(frozen=True)
@@ -151,7 +193,7 @@ def plot_force_traces(traces: Sequence[ForceTrace], path: str | Path) -> Path:
     """Total force over time for a few presses: ground truth vs prediction."""
     if not traces:
         raise ValueError("need at least one force trace")
-    fig = _new_figure(3.2 * len(traces) + 0.75, 3.0)
+    fig = new_figure(3.2 * len(traces) + 0.75, 3.0)
     axes = fig.subplots(1, len(traces), squeeze=False)[0]
     fig.subplots_adjust(
         left=0.75 / (3.2 * len(traces) + 0.75), right=0.98, bottom=0.17, top=0.9, wspace=0.25
@@ -166,7 +208,7 @@ def plot_force_traces(traces: Sequence[ForceTrace], path: str | Path) -> Path:
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("total force (N)")
     axes[0].legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # --- captions -----------------------------------------------------------------------
@@ -190,9 +232,10 @@ def region_error_caption(grid: int, cell_mm: float) -> str:
     return (
         f"Pressure MAE (kPa) by where the press was: the field of view cut into {grid} x {grid} "
         f"cells of {cell_mm:g} mm, each frame counted in the cell of its press's commanded "
-        f"position (all frames of the press). Colour: MAE in kPa ({ERROR_CMAP}: black 0, "
-        "light yellow the worst cell); each cell prints its MAE and n, its number of frames; "
-        f"grey cells had no presses. {MAP_AXES}"
+        f"position (all frames of the press). Colour: MAE in kPa (pale yellow 0, dark red "
+        "the worst cell); each cell prints its MAE and n, its number of frames. Hatched grey "
+        "cells had no presses: no data, not an error of 0 (the legend says so). "
+        f"{MAP_AXES}"
     )
 
 
@@ -226,7 +269,7 @@ def plot_learning_curve(
     """Left: held-out force error against the presses used; right: the early-stopping
     presses' MAE over the fine-tuning (time in s), the kept checkpoint (index ``kept``)
     circled."""
-    fig = _new_figure(8.0, 3.2)
+    fig = new_figure(8.0, 3.2)
     left, right = fig.subplots(1, 2)
     fig.subplots_adjust(left=0.09, right=0.98, bottom=0.16, top=0.88, wspace=0.3)
     for point in points:
@@ -247,7 +290,7 @@ def plot_learning_curve(
     right.set_xlabel("fine-tuning time (s)")
     right.set_ylabel("MAE on early-stopping presses (kPa)")
     right.grid(alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def learning_curve_caption() -> str:

@@ -1,4 +1,5 @@
-"""Self-describing checkpoints, and safe import of the reference training checkpoints.
+"""The beadsight checkpoint format: :class:`PressureModel`, its metadata, saving, and the
+safe load of a checkpoint file.
 
 A beadsight checkpoint is a ``torch.save`` file holding only tensors and plain
 Python values (it loads with ``weights_only=True``):
@@ -10,13 +11,14 @@ channel order, normalisation, output scale, sensor geometry, units and provenanc
 so the file alone rebuilds a working predictor. Versions :data:`READ_VERSIONS` are read:
 version 3 added rest-referenced models (``rest_input``), which version 2 files are not.
 
-Reference checkpoints (pickled training dicts with numpy arrays) are read with
-``weights_only=True``; numpy arrays are built only by the checked stand-ins of
-:mod:`beadsight.safe_numpy` (plain numeric and bool dtypes), and anything else a
-pickle asks for is refused before it can run. Whatever the format,
-:func:`load_checkpoint` refuses non-finite weights and statistics, a zero
-``pixel_std``, a non-positive output scale and metadata that does not fit the
-weights, before it builds the model.
+:func:`read_checkpoint_file` reads any checkpoint file with ``weights_only=True``; numpy
+arrays are built only by the checked stand-ins of :mod:`beadsight.safe_numpy` (plain
+numeric and bool dtypes), and anything else a pickle asks for is refused before it can
+run. :func:`model_from` refuses non-finite weights and statistics, a zero ``pixel_std``,
+a non-positive output scale and metadata that does not fit the weights, before it builds
+the model. The reference's training pickles are read by
+:mod:`beadsight.checkpoint.reference`; :func:`beadsight.checkpoint.load_checkpoint` reads
+either.
 """
 
 from __future__ import annotations
@@ -31,10 +33,9 @@ import numpy as np
 import torch
 
 from beadsight import safe_numpy
-from beadsight.config import REFERENCE_G_TO_N, ModelConfig, SensorGeometry
+from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.errors import BeadSightError
 from beadsight.files import atomic_write_bytes
-from beadsight.geometry import PA_PER_KPA
 from beadsight.model import FramesToPressure, UNet, infer_model_config
 
 FORMAT = "beadsight-checkpoint"
@@ -102,10 +103,10 @@ class CheckpointMeta:
             return cls(
                 model=ModelConfig.from_dict(d["model"]),
                 geometry=SensorGeometry.from_dict(d["geometry"]),
-                pixel_mean=_floats(d["pixel_mean"], source, "pixel_mean"),
-                pixel_std=_floats(d["pixel_std"], source, "pixel_std"),
+                pixel_mean=checked_floats(d["pixel_mean"], source, "pixel_mean"),
+                pixel_std=checked_floats(d["pixel_std"], source, "pixel_std"),
                 channel_order=d["channel_order"],
-                output_scale_kpa=_number(d["output_scale_kpa"], source, "output_scale_kpa"),
+                output_scale_kpa=checked_number(d["output_scale_kpa"], source, "output_scale_kpa"),
                 provenance=d.get("provenance", {}),
                 training=d.get("training", {}),
             )
@@ -312,7 +313,7 @@ def read_checkpoint_file(path: str | Path) -> dict[str, Any]:
     return obj
 
 
-def _floats(value: Any, source: Any, key: str, length: int = 3) -> list[float]:
+def checked_floats(value: Any, source: Any, key: str, length: int = 3) -> list[float]:
     """``length`` finite numbers from a list, array or tensor; CheckpointError otherwise."""
     try:
         arr = np.asarray(value.numpy() if isinstance(value, torch.Tensor) else value, dtype=float)
@@ -328,7 +329,7 @@ def _floats(value: Any, source: Any, key: str, length: int = 3) -> list[float]:
     return arr.tolist()
 
 
-def _number(value: Any, source: Any, key: str) -> float:
+def checked_number(value: Any, source: Any, key: str) -> float:
     """One finite number (a float, int or 0-d array); CheckpointError otherwise."""
     try:
         arr = np.asarray(value.numpy() if isinstance(value, torch.Tensor) else value, dtype=float)
@@ -341,63 +342,7 @@ def _number(value: Any, source: Any, key: str) -> float:
     return float(arr)
 
 
-def _reference_geometry(info: dict, path: Path) -> SensorGeometry:
-    """Sensor geometry from a reference ``data_loader_info`` dict."""
-    geometry = SensorGeometry().to_dict()
-    try:
-        if "image_size" in info:
-            geometry["image_size_px"] = int(np.asarray(info["image_size"]).reshape(-1)[0])
-        if "sensor_size" in info:
-            geometry["sensor_size_mm"] = float(np.asarray(info["sensor_size"]).reshape(-1)[0])
-        if "contact_radius" in info:
-            geometry["finger_radius_mm"] = float(info["contact_radius"])
-        return SensorGeometry.from_dict(geometry)
-    except (ValueError, TypeError, IndexError) as e:
-        raise CheckpointError(f"{path}: data_loader_info: {e}") from None
-
-
-def _reference_meta(obj: dict[str, Any], path: Path) -> tuple[CheckpointMeta, dict]:
-    """Metadata for a reference training dict (BGR, 0..255 mean/std, avg_pressure in Pa)."""
-    for key in ("model_state_dict", "pixel_mean", "pixel_std", "avg_pressure"):
-        if key not in obj:
-            raise CheckpointError(f"{path}: reference checkpoint has no {key!r} entry")
-    state = _checked_weights(obj["model_state_dict"], path)
-    dropout = _number(obj.get("dropout_prob", 0.2), path, "dropout_prob")
-    try:
-        model = infer_model_config(state, dropout=dropout)
-    except (ValueError, IndexError) as e:
-        raise CheckpointError(f"{path}: model_state_dict: {e}") from None
-    if "window_size" in obj and _number(obj["window_size"], path, "window_size") != model.frames:
-        raise CheckpointError(
-            f"{path}: window_size is {obj['window_size']} but the weights take "
-            f"{model.frames} frames"
-        )
-    info = obj.get("data_loader_info") or {}
-    if not isinstance(info, dict):
-        raise CheckpointError(
-            f"{path}: data_loader_info is a {type(info).__name__}; expected a dict"
-        )
-    meta = CheckpointMeta(
-        model=model,
-        geometry=_reference_geometry(info, path),
-        pixel_mean=_floats(obj["pixel_mean"], path, "pixel_mean"),
-        pixel_std=_floats(obj["pixel_std"], path, "pixel_std"),
-        channel_order="BGR",
-        output_scale_kpa=_number(obj["avg_pressure"], path, "avg_pressure") / PA_PER_KPA,
-        provenance={
-            "source": "reference",
-            "file": str(path),
-            "epoch": int(_number(obj["epoch"], path, "epoch")) if "epoch" in obj else None,
-            "dataset_path": str(obj.get("dataset_path", "")),
-            "force_unit": str(info.get("force_unit", "g")),
-            "g_to_n": REFERENCE_G_TO_N,
-        },
-        training=_reference_training(obj),
-    )
-    return meta, state
-
-
-def _checked_weights(state: Any, path: Path) -> dict[str, torch.Tensor]:
+def checked_weights(state: Any, path: Path) -> dict[str, torch.Tensor]:
     """A state_dict of dense CPU tensors with finite values; CheckpointError otherwise."""
     if not isinstance(state, dict):
         raise CheckpointError(
@@ -420,12 +365,12 @@ def _checked_weights(state: Any, path: Path) -> dict[str, torch.Tensor]:
     return state
 
 
-def _check_meta(meta: CheckpointMeta, state: dict[str, torch.Tensor], path: Path) -> None:
+def check_meta(meta: CheckpointMeta, state: dict[str, torch.Tensor], path: Path) -> None:
     """Refuse metadata that would give a model NaN output or allocate absurd buffers."""
-    _floats(meta.pixel_mean, path, "pixel_mean")
-    if min(_floats(meta.pixel_std, path, "pixel_std")) <= 0:
+    checked_floats(meta.pixel_mean, path, "pixel_mean")
+    if min(checked_floats(meta.pixel_std, path, "pixel_std")) <= 0:
         raise CheckpointError(f"{path}: pixel_std is {meta.pixel_std}; expected values > 0")
-    if not _number(meta.output_scale_kpa, path, "output_scale_kpa") > 0:
+    if not checked_number(meta.output_scale_kpa, path, "output_scale_kpa") > 0:
         raise CheckpointError(
             f"{path}: output_scale_kpa is {meta.output_scale_kpa}; expected a number > 0"
         )
@@ -457,67 +402,25 @@ def _check_meta(meta: CheckpointMeta, state: dict[str, torch.Tensor], path: Path
             )
 
 
-def _reference_training(obj: dict[str, Any]) -> dict[str, Any]:
-    """The reference's split: window-end frame indices into the file at dataset_path
-    (read by ``evaluate --split test``); indices that are not integers are left out."""
-    out: dict[str, Any] = {"dataset_path": str(obj.get("dataset_path", ""))}
-    for key in ("train_indices", "test_indices"):
-        try:
-            values = np.asarray(obj[key], dtype=np.float64).reshape(-1)
-        except (KeyError, TypeError, ValueError):
-            continue
-        if np.isfinite(values).all() and np.array_equal(values, np.round(values)):
-            out[key] = values.astype(np.int64).tolist()
-    return out
+def read_ours(obj: dict[str, Any], path: Path) -> tuple[CheckpointMeta, dict[str, torch.Tensor]]:
+    """The metadata and checked weights of a beadsight checkpoint dict (one with a
+    ``"beadsight"`` entry, as :func:`read_checkpoint_file` returns it)."""
+    meta = CheckpointMeta.from_json(obj["beadsight"], str(path))
+    return meta, checked_weights(obj.get("state_dict"), path)
 
 
-def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> PressureModel:
-    """Load a beadsight checkpoint or a reference training checkpoint, safely.
-
-    Never executes code from the file: a pickle that asks for anything other than
-    tensors, plain values or plain numeric numpy arrays raises
-    :class:`UnsafeCheckpointError`. Non-finite weights or statistics, a zero pixel_std,
-    a non-positive output scale and metadata that does not fit the weights raise
-    :class:`CheckpointError`, so no command runs a model that can only output NaN.
-    """
-    path = Path(path)
-    obj = read_checkpoint_file(path)
-    if "beadsight" in obj:
-        meta = CheckpointMeta.from_json(obj["beadsight"], str(path))
-        state = _checked_weights(obj.get("state_dict"), path)
-    elif "model_state_dict" in obj:
-        meta, state = _reference_meta(obj, path)
-    else:
-        raise CheckpointError(
-            f"{path}: neither a beadsight checkpoint (no 'beadsight' entry) nor a reference "
-            f"checkpoint (no 'model_state_dict'); keys: {sorted(map(str, obj))[:10]}"
-        )
-    _check_meta(meta, state, path)
+def model_from(
+    meta: CheckpointMeta,
+    state: dict[str, torch.Tensor],
+    path: Path,
+    map_location: str | torch.device = "cpu",
+) -> PressureModel:
+    """The model ``meta`` describes with ``state``'s weights, after :func:`check_meta`;
+    CheckpointError naming ``path`` if the weights do not fit."""
+    check_meta(meta, state, path)
     module = _build_module(meta)
     try:
         module.net.load_state_dict(state)
     except (RuntimeError, TypeError, AttributeError) as e:
         raise CheckpointError(f"{path}: weights do not fit the described model: {e}") from None
     return PressureModel(module, meta, source=str(path)).to(map_location)
-
-
-def checkpoint_summary(path: str | Path) -> dict[str, Any]:
-    """What a checkpoint is and how it was made: architecture, input, output, training."""
-    model = load_checkpoint(path)
-    meta, training = model.meta, model.meta.training
-    init = meta.provenance.get("init")
-    return {
-        "path": str(path),
-        "format": "reference" if meta.provenance.get("source") == "reference" else "beadsight",
-        "parameters": sum(p.numel() for p in model.module.parameters()),
-        **meta.model.to_dict(),
-        "image_size_px": model.image_size,
-        "channel_order": meta.channel_order,
-        "output_scale_kpa": meta.output_scale_kpa,
-        "dataset": meta.provenance.get("dataset") or meta.provenance.get("dataset_path"),
-        "initialised_from": init.get("path") if isinstance(init, dict) else None,
-        "step": training.get("step"),
-        "epoch": training.get("epoch", meta.provenance.get("epoch")),
-        "best_val": training.get("best_val"),
-        "geometry": meta.geometry.to_dict(),
-    }
