@@ -14,9 +14,9 @@ from beadsight.config import DEVICE_CHOICES, ConfigError, _Serializable
 
 DEFAULT_BUDGET_MIN = 10.0  # minutes for the whole calibration (evaluations included)
 # The smallest budget in which a fine-tuning candidate gets any training on a 2-core CPU
-# with the shipped base model and 30 presses (docs/calibration.md, "Budgets"); below it
-# only the zero-press candidate is scored.
-SMALLEST_USEFUL_BUDGET_MIN = 2.0
+# with the shipped base model and 30 presses (measured: none at 1 min, 9 steps at 1.5 min;
+# docs/calibration.md, "Budgets"); below it only zero-shot and zero-press are scored.
+SMALLEST_USEFUL_BUDGET_MIN = 1.5
 # The candidates, in the order they are tried (docs/calibration.md, "Candidates"):
 # zero-press: the base model with the new pouch's rest statistics (no press used);
 # decoder / all: fine-tune those layers of the base; scratch: a small model from scratch.
@@ -27,7 +27,8 @@ CANDIDATE_SHARES = {"decoder": 1.0, "all": 1.0, "scratch": 1.0}
 SCRATCH_MIN_TRAIN_PRESSES = 8  # fewer training presses cannot train a model from scratch
 SCRATCH_WIDTH = 8  # the small model trained from scratch (issue 24's winning command)
 SCRATCH_LR = 1e-3
-MIN_CANDIDATE_S = 5.0  # a fine-tuning candidate given less training time than this is skipped
+MIN_CANDIDATE_S = 30.0  # a fine-tuning candidate given less training time than this is skipped
+# (measured: at 5 s, a 2-min budget split three ways bought 1-3 steps per candidate)
 CALIBRATION_SPLIT = (0.7, 0.1, 0.2)  # train / early stopping / test, by press
 MIN_PRESSES = 3  # one press each to train on, to stop early on and to test on
 RECOMMENDED_PRESSES = 10
