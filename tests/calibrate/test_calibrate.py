@@ -19,7 +19,14 @@ from beadsight.config import ConfigError, SensorGeometry
 from beadsight.data.dataset import DatasetError, open_dataset
 from beadsight.data.dataset_writer import DatasetWriter
 from beadsight.data.reference_file import export_reference
-from beadsight.data.rest import average_rest, rest_ends, with_rest
+from beadsight.data.rest import (
+    RestFileError,
+    RestReference,
+    average_rest,
+    load_rest_file,
+    rest_ends,
+    with_rest,
+)
 from beadsight.data.splits import dataset_window_ends
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.geometry import total_force_n
@@ -45,22 +52,26 @@ def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     # the shipped base (width 16) needs a few seconds of its budget for its evaluations
     assert cli("--data", data, "--out", out, "--budget-min", "0.3", "--no-progress") == 0
     printed = capsys.readouterr().out
-    assert "zero-shot" in printed and "calibrated" in printed and "report.html" in printed
+    assert "zero-shot" in printed and "kept:" in printed and "report.html" in printed
     for name in ("model.pt", "aligned.pt", "metrics.json", "report.html", "learning_curve.png"):
         assert (out / name).is_file(), name
     for name in ("presses.csv", "force_scatter.png", "force_error.png", "training_curve.png"):
         assert (out / name).is_file(), name  # the fine-tuning's curve: 2+ validations
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics["stages"]) == {"zero_shot", "aligned", "calibrated"}
+    assert set(metrics["candidates"]) == {"zero-shot", "zero-press", "decoder", "all", "scratch"}
     assert metrics["split"] == "held-out" and metrics["presses"] == 1
-    assert metrics["coverage"] == metrics["window_coverage"] > 0  # every frame with a window
+    assert 0 < metrics["coverage"] <= metrics["window_coverage"]
     record = metrics["calibration"]
     assert record["base"].endswith("base_model.pt") and record["force_gain"] == 1.0
     assert record["alignment"]["frames"].startswith("pre-contact")
-    assert len(record["presses"]["train"]) == 4 and record["fine_tuning"]["steps"] >= 1
-    assert metrics["calibration"]["seconds"] < 0.3 * 60 + 30
+    assert len(record["presses"]["train"]) == 4
+    # 18 s cannot buy the width-16 base a fine-tuning on this machine: said plainly
+    if not record["fine_tuned"]:
+        assert "no fine-tuning happened (0 steps)" in record["no_fine_tuning"]
+        assert "No fine-tuning happened" in printed
+    assert record["budget"]["seconds"] <= 0.3 * 60 * 1.1
     page = (out / "report.html").read_text()
-    for text in ("base model, zero-shot", "alignment only", "Learning curve", "paper"):
+    for text in ("base model, zero-shot", "zero-press", "Learning curve", "paper"):
         assert text in page
     # model.pt is a normal checkpoint whose stored split evaluate reuses
     model = load_checkpoint(out / "model.pt")
@@ -71,38 +82,46 @@ def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     # a second calibration into the same folder needs --overwrite
     assert cli("--data", data, "--out", out, *QUICK) == 1
     assert "--overwrite" in capsys.readouterr().err
-    assert cli("--data", data, "--out", out, "--layers", "none", "--overwrite", *QUICK) == 0
+    assert (
+        cli("--data", data, "--out", out, "--candidates", "zero-press", "--overwrite", *QUICK) == 0
+    )
     assert not (out / "train").exists()
-    assert json.loads((out / "metrics.json").read_text())["calibration"]["fine_tuning"] is None
+    again = json.loads((out / "metrics.json").read_text())
+    assert again["calibration"]["fine_tuned"] is False
+    assert again["candidates"]["decoder"]["status"] == "skipped: not in --candidates"
 
 
 def test_calibrate_a_reference_layout_file_with_rest_frames_and_gain(make_dataset, base, tmp_path):
     ours = make_dataset(presses=8, frames_per_press=40)
     reference = export_reference(ours, tmp_path / "reference.h5")  # BGR, grams, no presses
-    rest = _rest_file(tmp_path / "rest.h5", frames=30, level=90)
+    rest = RestReference(np.full((64, 64, 3), 90, np.uint8), frames=30).save(tmp_path / "r.npz")
     config = CalibrateConfig(
         data=str(reference),
         out=str(tmp_path / "cal"),
         base=str(base),
-        budget_min=0.1,
+        budget_min=0.25,
         rest=str(rest),
         gain=True,
-        layers="decoder",
         skip=1,
         progress=False,
     )
     metrics = calibrate(config)
     record = metrics["calibration"]
     assert record["alignment"]["count"] == 30 and record["alignment"]["pixel_mean"] == [90.0] * 3
+    assert record["alignment"]["source"] == str(rest)
+    assert load_checkpoint(tmp_path / "cal" / "aligned.pt").meta.pixel_mean == [90.0] * 3
     assert 0.2 <= record["force_gain"] <= 5.0
     used = sorted(sum(record["presses"].values(), []))
     assert used == list(range(1, 8))  # --skip 1 dropped press 0
     model = load_checkpoint(tmp_path / "cal" / "model.pt")
-    assert model.meta.pixel_mean == [90.0] * 3
-    trained = load_checkpoint(tmp_path / "cal" / "train" / "best.pt")
-    assert model.meta.output_scale_kpa == pytest.approx(
-        trained.meta.output_scale_kpa * record["force_gain"]
+    kept = {"zero-shot": base, "zero-press": tmp_path / "cal" / "aligned.pt"}.get(
+        metrics["chosen"], tmp_path / "cal" / "train" / metrics["chosen"] / "best.pt"
     )
+    assert model.meta.pixel_mean == load_checkpoint(kept).meta.pixel_mean
+    assert model.meta.output_scale_kpa == pytest.approx(
+        load_checkpoint(kept).meta.output_scale_kpa * record["force_gain"]
+    )
+    assert load_rest_file(tmp_path / "cal" / "rest.npz", 64).frames == 30
     assert (tmp_path / "cal" / "report.html").is_file()
 
 
@@ -147,8 +166,13 @@ def test_bad_inputs_get_clear_errors(make_dataset, base, tmp_path, capsys):
         f["images"] = np.zeros((4, 64, 64, 3), np.uint8)
     with pytest.raises(DatasetError, match=r"fieldless\.h5.*force"):
         run(fieldless)
-    with pytest.raises(DatasetError, match=r"rest\.h5: 5 rest frames"):
+    with pytest.raises(RestFileError, match=r"rest file .*rest\.h5: "):
         run(six, rest=str(_rest_file(tmp_path / "rest.h5", frames=5, level=1)))
+    with pytest.raises(RestFileError, match=r"rest file .*missing\.npz: not found"):
+        run(six, rest=str(tmp_path / "missing.npz"))
+    small_rest = RestReference(np.zeros((32, 32, 3), np.uint8)).save(tmp_path / "small.npz")
+    with pytest.raises(RestFileError, match=r"small\.npz: the image is 32x32 px but the model"):
+        run(six, rest=str(small_rest))
     assert not (tmp_path / "out" / "model.pt").exists()
     # the command line prints each as one line, exit code 1
     capsys.readouterr()
@@ -168,7 +192,7 @@ def test_calibrate_a_rest_referenced_base(rest_run, tmp_path):
         data=str(data),
         out=str(out),
         base=str(base),
-        budget_min=0.1,
+        budget_min=0.25,
         gain=True,
         skip=1,
         device="cpu",
@@ -176,13 +200,14 @@ def test_calibrate_a_rest_referenced_base(rest_run, tmp_path):
     )
     metrics = calibrate(config)
     record = metrics["calibration"]
-    assert record["fine_tuning"]["steps"] >= 1 and 0.2 <= record["force_gain"] <= 5.0
-    for name in ("model.pt", "aligned.pt", "train/best.pt"):
+    assert 0.2 <= record["force_gain"] <= 5.0
+    for name in ("model.pt", "aligned.pt"):
         assert load_checkpoint(out / name).meta.model.rest_input, name
     with open_dataset(data) as ds:
         frames = dataset_window_ends(ds, 3, record["presses"]["test"], rest=True).size
-    assert metrics["frames"] == frames > 0
-    assert {stage["frames"] for stage in metrics["stages"].values()} == {frames}
+    assert 0 < metrics["frames"] <= frames
+    scored = [c["test"]["frames"] for c in metrics["candidates"].values() if c["test"]]
+    assert set(scored) == {metrics["frames"]}  # every candidate on the same test frames
 
 
 def test_force_gain_of_a_rest_model_uses_inputs_with_their_rest_images(rest_run):

@@ -1,5 +1,5 @@
 """The calibration report in a real headless Chromium, opened from disk: the metrics table
-beside the paper and the base model's stages, every image and caption, the raw-file links,
+beside the paper and the other candidates, every image and caption, the raw-file links,
 nothing loaded from outside the folder. Saves artifacts/report-calibrate.png."""
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ from helpers.browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS
 from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight.calibrate.config import CalibrateConfig
+from beadsight.calibrate.report import CANDIDATE_NAMES
 from beadsight.calibrate.run import calibrate
 
 pytestmark = [
@@ -33,9 +34,9 @@ def test_calibration_report_in_chromium(make_dataset, tiny_model, tmp_path):
     out = tmp_path / "cal"
     data = make_dataset(presses=6)
     config = CalibrateConfig(
-        data=str(data), out=str(out), base=str(base), budget_min=0.1, progress=False
+        data=str(data), out=str(out), base=str(base), budget_min=0.3, progress=False
     )
-    calibrate(config)
+    metrics = calibrate(config)
     with sync_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
         page = browser.new_page(viewport={"width": 1200, "height": 900})
@@ -44,15 +45,17 @@ def test_calibration_report_in_chromium(make_dataset, tiny_model, tmp_path):
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto((out / "report.html").as_uri(), wait_until="load")
         assert page.locator("main > h1").inner_text().startswith("Calibration: tiny.h5")
-        assert "zero-press alignment" in page.locator("p.summary").inner_text()
+        summary = page.locator("p.summary").inner_text()
+        assert "presses were used" in summary and "Kept: " in summary
         heads = page.locator("table.metrics thead th").all_inner_texts()
-        assert heads == [
-            "metric",
-            "this run",
-            "paper",
-            "baseline: base model, zero-shot",
-            "baseline: alignment only",
+        others = [
+            f"baseline: {CANDIDATE_NAMES[n]}"
+            for n, c in metrics["candidates"].items()
+            if c["test"] and n != metrics["chosen"]
         ]
+        assert heads == ["metric", "this run", "paper", *others]
+        notes = page.locator("body").inner_text()
+        assert all(f"Candidate {CANDIDATE_NAMES[n]}" in notes for n in metrics["candidates"])
         images = page.locator("figure img")
         assert [images.nth(i).get_attribute("src") for i in range(images.count())] == FIGURES
         sizes = page.evaluate("[...document.images].map(i => [i.complete, i.naturalWidth])")

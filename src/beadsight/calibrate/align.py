@@ -1,13 +1,16 @@
 """What a new sensor's model can adapt without training its weights.
 
+* **The rest reference** (:class:`RestFrames`): the new pouch untouched, from a rest file
+  (the ``.npz`` of ``live --rest``, :func:`beadsight.data.rest.load_rest_file`) or from
+  the frames of a dataset's presses before each makes contact
+  (:func:`pre_contact_mask`). Its rest image (the dataset rule of
+  :mod:`beadsight.data.rest`) is written beside a calibration as ``rest.npz``.
 * **Zero-press alignment** (:func:`align_to_rest`): the normalisation statistics (per
-  channel mean and std, 0..255) become those of the new sensor's rest frames - a few
-  seconds of the untouched sensor, or the approach frames before each press makes
-  contact (:func:`pre_contact_mask`). This matches the brightness, contrast and colour
-  balance of the new camera and lights to what the network saw in training. A model
-  without rest input cannot take a per-pixel rest reference; a rest-referenced one gets
-  each window's own rest image from the data, as in training and evaluation
-  (:mod:`beadsight.data.windows`), and is aligned as well.
+  channel mean and std, 0..255) become those of the rest frames. This matches the
+  brightness, contrast and colour balance of the new camera and lights to what the
+  network saw in training. A model without rest input cannot take a per-pixel rest
+  reference; a rest-referenced one gets each window's own rest image from the data, as
+  in training and evaluation (:mod:`beadsight.data.windows`), and is aligned as well.
 * **Force gain** (:func:`fit_force_gain`): one factor on the output scale, the least
   squares fit of the predicted to the measured total force on training frames in
   contact (a pouch stiffer or softer than the base model's).
@@ -17,13 +20,16 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from beadsight.checkpoint import PressureModel
 from beadsight.data.dataset import Dataset, DatasetError, open_dataset
+from beadsight.data.rest import REST_FRAMES, RestFileError, average_rest, load_rest_file, rest_ends
 from beadsight.data.splits import dataset_window_ends
-from beadsight.data.windows import WindowReader, pixel_stats
+from beadsight.data.windows import WindowReader, pixel_stats, resize_frames
 from beadsight.geometry import total_force_n
 
 logger = logging.getLogger(__name__)
@@ -44,11 +50,6 @@ def pre_contact_mask(ds: Dataset, press_ids: np.ndarray) -> np.ndarray:
     return ds.valid & inside & (index < start) & np.isin(cycle, press_ids) & ~ds.contact
 
 
-def rest_file_mask(ds: Dataset) -> np.ndarray:
-    """(N,) bool: the valid frames out of contact of a rest recording."""
-    return ds.valid & ~ds.contact
-
-
 def with_meta(model: PressureModel, **changes) -> PressureModel:
     """A copy of ``model`` (same weights, same device) with metadata fields changed."""
     new = PressureModel.create(dataclasses.replace(model.meta, **changes))
@@ -56,34 +57,62 @@ def with_meta(model: PressureModel, **changes) -> PressureModel:
     return new.to(model.device)
 
 
-def rest_statistics(ds: Dataset, mask: np.ndarray, image_size: int, what: str):
-    """Per-channel RGB mean and std (0..255) of the rest frames ``mask`` at ``image_size``."""
-    if int(mask.sum()) < MIN_REST_FRAMES:
-        raise DatasetError(
-            f"{ds.path}: {int(mask.sum())} rest frames ({what}); the zero-press alignment "
-            f"needs at least {MIN_REST_FRAMES} frames of the untouched sensor"
-        )
-    return pixel_stats(ds, mask, image_size)
+@dataclass(frozen=True)
+class RestFrames:
+    """The new pouch at rest: ``mean``/``std`` per RGB channel (0..255) of its rest frames,
+    its rest ``image`` ((S, S, 3) uint8 RGB at the model's size; None where the data has
+    no settled rest) and ``record`` (what metrics.json says: source, frames, count)."""
+
+    mean: list[float]
+    std: list[float]
+    image: np.ndarray | None
+    record: dict
 
 
-def align_to_rest(
-    model: PressureModel, data: str, rest: str | None, train_ids: np.ndarray
-) -> tuple[PressureModel, dict]:
-    """``model`` with the normalisation of the new sensor's rest frames: those of the
-    file ``rest``, else the pre-contact frames of the presses ``train_ids`` of ``data``."""
-    source = rest or data
-    with open_dataset(source) as ds:
-        if rest:
-            mask, what = rest_file_mask(ds), "valid frames out of contact"
-        else:
-            mask, what = pre_contact_mask(ds, train_ids), "pre-contact frames of training presses"
-        mean, std = rest_statistics(ds, mask, model.image_size, what)
+def rest_from_file(path: str, image_size: int) -> RestFrames:
+    """The rest file ``path`` (.npz, :func:`~beadsight.data.rest.load_rest_file`) at the
+    model's ``image_size``. Its statistics are those of its one image, the average of
+    ``frames`` still frames (so without the camera noise of single frames)."""
+    if not Path(path).exists():
+        raise RestFileError(f"rest file {path}: not found; expected a rest file (.npz)")
+    ref = load_rest_file(path, image_size)
+    pixels = ref.image.reshape(-1, 3).astype(np.float64)
+    mean, std = pixels.mean(0), np.maximum(pixels.std(0), 1e-3)
+    what = f"the rest file's image (the average of {ref.frames} frames)"
+    record = {"source": str(path), "frames": what, "count": ref.frames}
+    return RestFrames(mean.tolist(), std.tolist(), ref.image, record)
+
+
+def rest_from_data(data: str, press_ids: np.ndarray, image_size: int) -> RestFrames:
+    """The rest frames of dataset ``data``: the valid frames of presses ``press_ids``
+    before each makes contact (the statistics), and the newest rest image of the dataset
+    rule (:func:`~beadsight.data.rest.rest_ends`) at ``image_size``."""
+    with open_dataset(data) as ds:
+        mask = pre_contact_mask(ds, press_ids)
+        what = "pre-contact frames of the presses"
+        count = int(mask.sum())
+        if count < MIN_REST_FRAMES:
+            raise DatasetError(
+                f"{ds.path}: {count} rest frames ({what}); the zero-press alignment "
+                f"needs at least {MIN_REST_FRAMES} frames of the untouched sensor"
+            )
+        mean, std = pixel_stats(ds, mask, image_size)
+        newest = int(rest_ends(ds.force_n, ds.valid)[-1])
+        image = None
+        if newest >= 0:
+            frames = ds.read_frames(newest - REST_FRAMES + 1, newest + 1)
+            image = average_rest(resize_frames(frames, image_size))
+    record = {"source": str(data), "frames": what, "count": count, "rest_image_end": newest}
+    return RestFrames(list(mean), list(std), image, record)
+
+
+def align_to_rest(model: PressureModel, rest: RestFrames) -> tuple[PressureModel, dict]:
+    """``model`` with the normalisation of the new sensor's rest frames ``rest``."""
+    mean, std = list(rest.mean), list(rest.std)
     if model.meta.channel_order == "BGR":
         mean, std = mean[::-1], std[::-1]
     record = {
-        "source": str(source),
-        "frames": what,
-        "count": int(mask.sum()),
+        **rest.record,
         "pixel_mean_before": [float(v) for v in model.meta.pixel_mean],
         "pixel_std_before": [float(v) for v in model.meta.pixel_std],
         "pixel_mean": [float(v) for v in mean],
@@ -93,15 +122,17 @@ def align_to_rest(
     logger.info(
         "alignment: %d rest frames (%s): pixel mean %s -> %s",
         record["count"],
-        what,
+        record["frames"],
         np.round(record["pixel_mean_before"], 1).tolist(),
         np.round(mean, 1).tolist(),
     )
-    return with_meta(model, pixel_mean=list(mean), pixel_std=list(std)), record
+    return with_meta(model, pixel_mean=mean, pixel_std=std), record
 
 
-def fit_force_gain(model: PressureModel, data: str, train_ids: np.ndarray) -> float:
-    """The factor g minimising sum (g * F_pred - F_true)^2 over (up to GAIN_MAX_FRAMES,
+def fit_force_gain(
+    model: PressureModel, data: str, train_ids: np.ndarray, max_frames: int = GAIN_MAX_FRAMES
+) -> float:
+    """The factor g minimising sum (g * F_pred - F_true)^2 over (up to ``max_frames``,
     evenly spaced) training frames in contact; F = total force of the map, N. A
     rest-referenced model's frames are those with a rest image before them."""
     rest = bool(model.rest)
@@ -111,7 +142,7 @@ def fit_force_gain(model: PressureModel, data: str, train_ids: np.ndarray) -> fl
         if ends.size == 0:
             raise DatasetError(f"{ds.path}: no training frame in contact to fit a force gain on")
         ends = ends[
-            np.unique(np.linspace(0, ends.size - 1, min(ends.size, GAIN_MAX_FRAMES)).astype(int))
+            np.unique(np.linspace(0, ends.size - 1, min(ends.size, max(max_frames, 1))).astype(int))
         ]
         reader = WindowReader(ds, model.span, model.image_size, rest)
         geometry = ds.geometry.with_image_size(model.image_size)
