@@ -55,8 +55,8 @@ def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     assert "zero-shot" in printed and "kept:" in printed and "report.html" in printed
     for name in ("model.pt", "aligned.pt", "metrics.json", "report.html", "learning_curve.png"):
         assert (out / name).is_file(), name
-    for name in ("presses.csv", "force_scatter.png", "force_error.png", "training_curve.png"):
-        assert (out / name).is_file(), name  # the fine-tuning's curve: 2+ validations
+    for name in ("presses.csv", "force_scatter.png", "force_error.png"):
+        assert (out / name).is_file(), name
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics["candidates"]) == {"zero-shot", "zero-press", "decoder", "all", "scratch"}
     assert metrics["split"] == "held-out" and metrics["presses"] == 1
@@ -69,6 +69,10 @@ def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     if not record["fine_tuned"]:
         assert "no fine-tuning happened (0 steps)" in record["no_fine_tuning"]
         assert "No fine-tuning happened" in printed
+    # the kept fine-tuning's curve (2+ validations), and none without a fine-tuning
+    assert (out / "training_curve.png").is_file() == (
+        metrics["chosen"] in ("decoder", "all", "scratch")
+    )
     assert record["budget"]["seconds"] <= 0.3 * 60 * 1.1
     page = (out / "report.html").read_text()
     for text in ("base model, zero-shot", "zero-press", "Learning curve", "paper"):
