@@ -157,11 +157,13 @@ def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path):
         assert m["frame"] == msg.FRAME_ID
         assert m["force"] == pytest.approx([0, 0, force[i]], rel=1e-6, abs=1e-12)
         assert m["torque"] == [0, 0, 0]
-    areas = [m["area_m2"] for m in got["contact_area"]]  # unstamped: values of the readings
-    assert len(areas) >= 0.8 * len(t)
-    for a in areas:  # float32 m^2 on the wire
-        assert np.min(np.abs(area * 1e-6 - a)) <= 1e-6 * a + 1e-15, f"{a} m^2 is no reading's"
-    assert max(areas) > 0
+    # the contact area, stamped with its reading's capture time: m^2 in vector.x
+    assert len(got["contact_area"]) >= 0.8 * len(t)
+    for m in got["contact_area"]:
+        i = _row(t, m["t"])
+        assert m["frame"] == msg.FRAME_ID
+        assert m["vector"] == pytest.approx([area[i] * 1e-6, 0, 0], rel=1e-6, abs=1e-15)
+    assert max(m["vector"][0] for m in got["contact_area"]) > 0
     for m in got["reference_force"]:
         assert m["force"][2] == pytest.approx(reference[_row(t, m["t"])])
     # the pressure image: 32FC1 little-endian kPa, bit for bit the recorded map
@@ -263,7 +265,7 @@ def test_messages_decode_with_rosbags(dds):
             msg.CAMERA: msg.camera_message(rgb, t),
             msg.FORCE: msg.wrench_message(3.5, t),
             msg.COP: msg.point_message(np.array([1.5, -2.0]), t),
-            msg.CONTACT_AREA: msg.area_message(12.5),
+            msg.CONTACT_AREA: msg.area_message(12.5, t),
             msg.HEALTH: msg.diagnostics_message(report),
         }
         decoded = {}
@@ -285,7 +287,10 @@ def test_messages_decode_with_rosbags(dds):
     assert decoded[msg.FORCE].wrench.force.z == 3.5
     point = decoded[msg.COP].point
     assert (point.x, point.y, point.z) == pytest.approx((1.5e-3, -2.0e-3, 0.0))
-    assert decoded[msg.CONTACT_AREA].data == pytest.approx(12.5e-6)
+    area = decoded[msg.CONTACT_AREA]
+    assert (area.header.stamp.sec, area.header.stamp.nanosec) == (1_700_000_000, 125_000_000)
+    assert area.header.frame_id == "beadsight"
+    assert (area.vector.x, area.vector.y, area.vector.z) == pytest.approx((12.5e-6, 0.0, 0.0))
     sensor_status, drift = decoded[msg.HEALTH].status
     assert (sensor_status.name, drift.name, drift.level, drift.message) == (
         msg.SENSOR_STATUS,

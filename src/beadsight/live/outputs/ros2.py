@@ -165,7 +165,7 @@ class Ros2Publisher(OutputListener):
         cop = np.asarray(r.cop_mm, dtype=np.float64).reshape(2)
         if np.all(np.isfinite(cop)):
             self._write(msg.COP, msg.point_message(cop, t))
-        self._write(msg.CONTACT_AREA, msg.area_message(r.contact_area_mm2))
+        self._write(msg.CONTACT_AREA, msg.area_message(r.contact_area_mm2, t))
         if np.isfinite(update.reference_force_n):
             self._write(msg.REFERENCE_FORCE, msg.wrench_message(update.reference_force_n, t))
         if self.camera:

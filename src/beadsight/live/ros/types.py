@@ -25,7 +25,7 @@ TOPIC_TYPES = {  # topic name (under the namespace) -> ROS 2 type (see ros.messa
     msg.PRESSURE: "sensor_msgs/msg/Image",
     msg.FORCE: "geometry_msgs/msg/WrenchStamped",
     msg.COP: "geometry_msgs/msg/PointStamped",
-    msg.CONTACT_AREA: "std_msgs/msg/Float32",
+    msg.CONTACT_AREA: "geometry_msgs/msg/Vector3Stamped",
     msg.HEALTH: "diagnostic_msgs/msg/DiagnosticArray",
     msg.REFERENCE_FORCE: "geometry_msgs/msg/WrenchStamped",
     msg.CAMERA: "sensor_msgs/msg/Image",
