@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import random
 import subprocess
 import sys
 import threading
@@ -38,45 +37,7 @@ from beadsight.live.sensor import LiveSensor
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 PEER = Path(__file__).with_name("ros2_peer.py")
-LOOPBACK_CONFIG = """<?xml version="1.0" encoding="UTF-8"?>
-<CycloneDDS xmlns="https://cdds.io/config">
-  <Domain Id="any">
-    <General>
-      <Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
-      <AllowMulticast>false</AllowMulticast>
-    </General>
-    <Discovery>
-      <ParticipantIndex>auto</ParticipantIndex>
-      <Peers><Peer address="127.0.0.1"/></Peers>
-    </Discovery>
-    <Tracing>
-      <Verbosity>config</Verbosity>
-      <OutputFile>TRACE_DIR/dds-${CYCLONEDDS_PID}.log</OutputFile>
-    </Tracing>
-  </Domain>
-</CycloneDDS>
-"""
-_DOMAINS = itertools.count(random.randrange(1, 200))  # a fresh domain per test
 STAMP_TOLERANCE_S = 1e-6  # header stamps are integer ns; float64 unix s resolve ~0.24 us
-
-
-@pytest.fixture
-def dds(tmp_path, monkeypatch):
-    """(domain id, trace folder): loopback-only Cyclone for this process and its children.
-    After the test, every participant's trace must show it selected 127.0.0.1 alone."""
-    traces = tmp_path / "dds"
-    traces.mkdir()
-    config = tmp_path / "cyclonedds.xml"
-    config.write_text(LOOPBACK_CONFIG.replace("TRACE_DIR", str(traces)))
-    monkeypatch.setenv("CYCLONEDDS_URI", config.as_uri())
-    monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
-    yield next(_DOMAINS) % 200 + 1, traces
-    logs = list(traces.glob("dds-*.log"))
-    assert logs, "no Cyclone trace: the loopback config was not used"
-    for log in logs:
-        text = log.read_text()
-        assert "selected interfaces: lo " in text, f"{log.name} did not select loopback alone"
-        assert "AllowMulticast/#text: false" in text
 
 
 class Peer:
@@ -249,8 +210,8 @@ def test_messages_decode_with_rosbags(dds):
     ROS 2 type store into the values of the reading."""
     from rosbags.typesys import Stores, get_typestore
 
-    from beadsight.live.outputs.ros2 import Ros2Publisher, _build
-    from beadsight.live.ros.types import TOPIC_TYPES
+    from beadsight.live.outputs.ros2 import Ros2Publisher
+    from beadsight.live.ros.types import TOPIC_TYPES, build_struct
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     domain, _ = dds
@@ -272,7 +233,7 @@ def test_messages_decode_with_rosbags(dds):
         for name, message in messages.items():
             writer, cls = publisher._writers[name]
             assert writer._use_version_2 is False  # XCDR1 (plain CDR), what ROS 2 speaks
-            raw = _build(cls, message).serialize(use_version_2=writer._use_version_2)
+            raw = build_struct(cls, message).serialize(use_version_2=writer._use_version_2)
             assert raw[:2] == b"\x00\x01"  # CDR little-endian encapsulation
             decoded[name] = store.deserialize_cdr(raw, TOPIC_TYPES[name])
     finally:
