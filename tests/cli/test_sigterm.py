@@ -52,7 +52,7 @@ def test_live_on_sigterm_prints_its_summary_and_finishes_the_recording(tmp_path)
     video = write_video(tmp_path / "v.avi", frames, fps=30)
     checkpoint = tiny_model().save(tmp_path / "tiny.pt")
     out = tmp_path / "rec.h5"
-    more = ["--no-viewer", "--no-stream", "--loop", "--output", str(out), "--report-every", "0.2"]
+    more = ["--no-viewer", "--loop", "--output", str(out), "--report-every", "0.2"]
     proc = _start(live_argv(checkpoint, video, *more))
     lines: list[str] = []
 

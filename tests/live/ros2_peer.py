@@ -2,7 +2,7 @@
 
 The message types below are written from the ROS 2 interface definitions
 (builtin_interfaces/Time, std_msgs/Header, sensor_msgs/Image, geometry_msgs/Vector3,
-Wrench, WrenchStamped, Point, PointStamped, std_msgs/Float32, diagnostic_msgs/KeyValue,
+Vector3Stamped, Wrench, WrenchStamped, Point, PointStamped, diagnostic_msgs/KeyValue,
 DiagnosticStatus, DiagnosticArray) with the DDS names ROS 2's rosidl generates, not
 taken from beadsight. It subscribes the way ROS 2 nodes do: the sensor-data profile
 (best effort, keep last 5) on the images and the CoP, the default profile (reliable,
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import byte, float32, float64, int32, sequence, uint8, uint32
+from cyclonedds.idl.types import byte, float64, int32, sequence, uint8, uint32
 from cyclonedds.internal import InvalidSample
 from cyclonedds.qos import Policy, Qos
 from cyclonedds.sub import DataReader
@@ -86,8 +86,9 @@ class PointStamped(IdlStruct, typename="geometry_msgs::msg::dds_::PointStamped_"
 
 
 @dataclass
-class Float32(IdlStruct, typename="std_msgs::msg::dds_::Float32_"):
-    data: float32
+class Vector3Stamped(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3Stamped_"):
+    header: Header
+    vector: Vector3
 
 
 @dataclass
@@ -178,14 +179,17 @@ SUMMARIES = {
         **_stamped(m),
         "point": [m.point.x, m.point.y, m.point.z],
     },
-    "contact_area": lambda m: {"area_m2": m.data},
+    "contact_area": lambda m: {
+        **_stamped(m),
+        "vector": [m.vector.x, m.vector.y, m.vector.z],
+    },
     "health": _diagnostics,
 }
 TOPICS = {  # name -> (type, QoS of the subscription)
     "pressure": (Image, SENSOR_DATA),
     "force": (WrenchStamped, DEFAULT),
     "cop": (PointStamped, SENSOR_DATA),
-    "contact_area": (Float32, DEFAULT),
+    "contact_area": (Vector3Stamped, DEFAULT),
     "health": (DiagnosticArray, DEFAULT),
     "reference_force": (WrenchStamped, DEFAULT),
     "camera": (Image, SENSOR_DATA),

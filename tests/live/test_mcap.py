@@ -10,9 +10,16 @@ import pytest
 from helpers.live import BACKEND, SPAN, ScriptedSource, press_frames, tiny_model
 
 from beadsight.cli import main
-from beadsight.live.recording.mcap import TOPIC_COP, TOPIC_FORCE, TOPIC_PRESSURE, export_mcap
+from beadsight.live.recording.mcap import (
+    TOPIC_CONTACT_AREA,
+    TOPIC_COP,
+    TOPIC_FORCE,
+    TOPIC_HEALTH,
+    TOPIC_PRESSURE,
+    export_mcap,
+)
 from beadsight.live.recording.readings import ReadingsFileError, open_readings
-from beadsight.live.ros.messages import FRAME_ID
+from beadsight.live.ros.messages import FRAME_ID, SENSOR_STATUS
 from beadsight.live.sensor import LiveSensor
 
 
@@ -66,6 +73,16 @@ def check_messages(messages: dict[str, list], readings: list) -> None:
         assert stamp_ns(wrench.header) == log_ns == round(Fraction(r.timestamp_s) * 10**9)
         assert wrench.wrench.force.z == pytest.approx(r.force_n, rel=1e-6)
         assert (wrench.wrench.force.x, wrench.wrench.torque.z) == (0.0, 0.0)
+    # the contact area: stamped with its reading's capture time, m^2 in vector.x
+    areas = messages[TOPIC_CONTACT_AREA]
+    assert len(areas) == len(readings)
+    for r, (schema, log_ns, area) in zip(readings, areas, strict=True):
+        assert schema == "geometry_msgs/msg/Vector3Stamped"
+        assert area.header.frame_id == FRAME_ID
+        assert stamp_ns(area.header) == log_ns == round(Fraction(r.timestamp_s) * 10**9)
+        assert area.vector.x == pytest.approx(r.contact_area_mm2 * 1e-6, rel=1e-6, abs=1e-15)
+        assert (area.vector.y, area.vector.z) == (0.0, 0.0)
+    assert max(r.contact_area_mm2 for r in readings) > 0  # the presses made contact
     for r, (schema, _log, point) in zip(with_cop, messages.get(TOPIC_COP, []), strict=True):
         assert schema == "geometry_msgs/msg/PointStamped"
         assert point.header.frame_id == FRAME_ID
@@ -103,6 +120,18 @@ def test_live_recording_straight_to_mcap(tmp_path):
     assert len(seen) == len(frames) - SPAN + 1
     check_messages(messages, seen)
     assert "/beadsight/reference_force" not in messages  # the source knows no true force
+    # the sensor's state, as on the ROS 2 health topic: at the first reading, on each change
+    # and once a second of capture time, stamped with a reading's capture time
+    health = messages[TOPIC_HEALTH]
+    times = {round(Fraction(r.timestamp_s) * 10**9) for r in seen}
+    assert 1 <= len(health) <= 2 + (seen[-1].timestamp_s - seen[0].timestamp_s)
+    assert health[0][1] == round(Fraction(seen[0].timestamp_s) * 10**9)
+    for schema, log_ns, array in health:
+        assert schema == "diagnostic_msgs/msg/DiagnosticArray"
+        assert stamp_ns(array.header) == log_ns and log_ns in times
+        status = array.status[0]
+        assert (status.name, status.hardware_id) == (SENSOR_STATUS, FRAME_ID)
+        assert {kv.key: kv.value for kv in status.values}["state"] == "ok"
 
 
 def test_cli_to_mcap(recording, tmp_path, capsys):
@@ -158,6 +187,6 @@ def test_nan_free_messages_for_frames_without_pressure(tmp_path):
     with McapReadingsWriter(tmp_path / "z.mcap", SensorGeometry(image_size_px=8)) as w:
         w.append(zero)
     messages = read_mcap(tmp_path / "z.mcap")
-    assert TOPIC_COP not in messages
+    assert TOPIC_COP not in messages and TOPIC_HEALTH not in messages  # no report given
     assert messages[TOPIC_FORCE][0][2].wrench.force.z == 0.0
     assert not math.isnan(messages[TOPIC_FORCE][0][2].wrench.force.z)

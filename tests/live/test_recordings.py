@@ -307,7 +307,7 @@ def test_cli_live_on_a_disk_full_at_start_leaves_no_partial(model, presses, full
     finally:
         os.close(fd)
     out = full_disk / "rec.h5"
-    more = ["--no-viewer", "--no-stream", "--output", str(out), "--frames", "5", "--loop"]
+    more = ["--no-viewer", "--output", str(out), "--frames", "5", "--loop"]
     assert main(live_argv(checkpoint, video, *more)) == 1
     err = capsys.readouterr().err
     assert f"could not write {out}: disk full; nothing was recorded" in err

@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import random
 import subprocess
 import sys
 import threading
@@ -38,45 +37,7 @@ from beadsight.live.sensor import LiveSensor
 pytestmark = pytest.mark.usefixtures("no_thread_leaks")  # every test stops its threads
 
 PEER = Path(__file__).with_name("ros2_peer.py")
-LOOPBACK_CONFIG = """<?xml version="1.0" encoding="UTF-8"?>
-<CycloneDDS xmlns="https://cdds.io/config">
-  <Domain Id="any">
-    <General>
-      <Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
-      <AllowMulticast>false</AllowMulticast>
-    </General>
-    <Discovery>
-      <ParticipantIndex>auto</ParticipantIndex>
-      <Peers><Peer address="127.0.0.1"/></Peers>
-    </Discovery>
-    <Tracing>
-      <Verbosity>config</Verbosity>
-      <OutputFile>TRACE_DIR/dds-${CYCLONEDDS_PID}.log</OutputFile>
-    </Tracing>
-  </Domain>
-</CycloneDDS>
-"""
-_DOMAINS = itertools.count(random.randrange(1, 200))  # a fresh domain per test
 STAMP_TOLERANCE_S = 1e-6  # header stamps are integer ns; float64 unix s resolve ~0.24 us
-
-
-@pytest.fixture
-def dds(tmp_path, monkeypatch):
-    """(domain id, trace folder): loopback-only Cyclone for this process and its children.
-    After the test, every participant's trace must show it selected 127.0.0.1 alone."""
-    traces = tmp_path / "dds"
-    traces.mkdir()
-    config = tmp_path / "cyclonedds.xml"
-    config.write_text(LOOPBACK_CONFIG.replace("TRACE_DIR", str(traces)))
-    monkeypatch.setenv("CYCLONEDDS_URI", config.as_uri())
-    monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
-    yield next(_DOMAINS) % 200 + 1, traces
-    logs = list(traces.glob("dds-*.log"))
-    assert logs, "no Cyclone trace: the loopback config was not used"
-    for log in logs:
-        text = log.read_text()
-        assert "selected interfaces: lo " in text, f"{log.name} did not select loopback alone"
-        assert "AllowMulticast/#text: false" in text
 
 
 class Peer:
@@ -157,11 +118,13 @@ def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path):
         assert m["frame"] == msg.FRAME_ID
         assert m["force"] == pytest.approx([0, 0, force[i]], rel=1e-6, abs=1e-12)
         assert m["torque"] == [0, 0, 0]
-    areas = [m["area_m2"] for m in got["contact_area"]]  # unstamped: values of the readings
-    assert len(areas) >= 0.8 * len(t)
-    for a in areas:  # float32 m^2 on the wire
-        assert np.min(np.abs(area * 1e-6 - a)) <= 1e-6 * a + 1e-15, f"{a} m^2 is no reading's"
-    assert max(areas) > 0
+    # the contact area, stamped with its reading's capture time: m^2 in vector.x
+    assert len(got["contact_area"]) >= 0.8 * len(t)
+    for m in got["contact_area"]:
+        i = _row(t, m["t"])
+        assert m["frame"] == msg.FRAME_ID
+        assert m["vector"] == pytest.approx([area[i] * 1e-6, 0, 0], rel=1e-6, abs=1e-15)
+    assert max(m["vector"][0] for m in got["contact_area"]) > 0
     for m in got["reference_force"]:
         assert m["force"][2] == pytest.approx(reference[_row(t, m["t"])])
     # the pressure image: 32FC1 little-endian kPa, bit for bit the recorded map
@@ -247,8 +210,8 @@ def test_messages_decode_with_rosbags(dds):
     ROS 2 type store into the values of the reading."""
     from rosbags.typesys import Stores, get_typestore
 
-    from beadsight.live.outputs.ros2 import Ros2Publisher, _build
-    from beadsight.live.ros.types import TOPIC_TYPES
+    from beadsight.live.outputs.ros2 import Ros2Publisher
+    from beadsight.live.ros.types import TOPIC_TYPES, build_struct
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     domain, _ = dds
@@ -263,14 +226,14 @@ def test_messages_decode_with_rosbags(dds):
             msg.CAMERA: msg.camera_message(rgb, t),
             msg.FORCE: msg.wrench_message(3.5, t),
             msg.COP: msg.point_message(np.array([1.5, -2.0]), t),
-            msg.CONTACT_AREA: msg.area_message(12.5),
+            msg.CONTACT_AREA: msg.area_message(12.5, t),
             msg.HEALTH: msg.diagnostics_message(report),
         }
         decoded = {}
         for name, message in messages.items():
             writer, cls = publisher._writers[name]
             assert writer._use_version_2 is False  # XCDR1 (plain CDR), what ROS 2 speaks
-            raw = _build(cls, message).serialize(use_version_2=writer._use_version_2)
+            raw = build_struct(cls, message).serialize(use_version_2=writer._use_version_2)
             assert raw[:2] == b"\x00\x01"  # CDR little-endian encapsulation
             decoded[name] = store.deserialize_cdr(raw, TOPIC_TYPES[name])
     finally:
@@ -285,7 +248,10 @@ def test_messages_decode_with_rosbags(dds):
     assert decoded[msg.FORCE].wrench.force.z == 3.5
     point = decoded[msg.COP].point
     assert (point.x, point.y, point.z) == pytest.approx((1.5e-3, -2.0e-3, 0.0))
-    assert decoded[msg.CONTACT_AREA].data == pytest.approx(12.5e-6)
+    area = decoded[msg.CONTACT_AREA]
+    assert (area.header.stamp.sec, area.header.stamp.nanosec) == (1_700_000_000, 125_000_000)
+    assert area.header.frame_id == "beadsight"
+    assert (area.vector.x, area.vector.y, area.vector.z) == pytest.approx((12.5e-6, 0.0, 0.0))
     sensor_status, drift = decoded[msg.HEALTH].status
     assert (sensor_status.name, drift.name, drift.level, drift.message) == (
         msg.SENSOR_STATUS,

@@ -12,11 +12,11 @@ import cyclonedds.idl  # noqa: F401  (the 'ros' extra: a missing one is an impor
 import numpy as np
 import rosbags.typesys  # noqa: F401
 
-from beadsight.live.outputs.ros2 import _build
 from beadsight.live.ros import messages as msg
 from beadsight.live.ros.types import (
     TOPIC_TYPES,
     _struct,
+    build_struct,
     fast_byte_sequences,
     idl_structs,
     message_definition,
@@ -31,7 +31,7 @@ def _kpa(seed: int) -> np.ndarray:
 
 
 def _image(cls: type, seed: int = 0):
-    return _build(cls, msg.image_message(_kpa(seed), 1_763_727_012.0334))
+    return build_struct(cls, msg.image_message(_kpa(seed), 1_763_727_012.0334))
 
 
 def test_every_struct_has_the_fields_of_the_rosbags_definition():

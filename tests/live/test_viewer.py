@@ -167,3 +167,98 @@ def test_bad_content_length_is_refused(model, tmp_path, headers, code):
         assert got == code, body
         assert "error" in json.loads(body)
         assert sensor.recording is None
+
+
+def _half_sent(port: int, n: int, partial: bytes) -> list[socket.socket]:
+    socks = []
+    for _ in range(n):
+        sock = socket.create_connection(("127.0.0.1", port))
+        sock.sendall(partial)
+        socks.append(sock)
+    return socks
+
+
+def _closed_within(sock: socket.socket, timeout_s: float) -> bytes | None:
+    """What the server sent before closing ``sock`` (None: still open after timeout_s)."""
+    sock.settimeout(timeout_s)
+    data = b""
+    try:
+        while chunk := sock.recv(4096):
+            data += chunk
+    except TimeoutError:
+        return None
+    except ConnectionResetError:
+        pass
+    return data
+
+
+@pytest.mark.parametrize(
+    "partial",
+    [b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n", b"GET /api/st", b""],
+    ids=["headers", "request-line", "nothing"],
+)
+def test_half_sent_requests_do_not_block_other_clients(model, partial):
+    """Slowloris: 40 connections that sent part of a request (more than the 32 request
+    threads the viewer had, which then answered everyone 503 for 5 s) cost nothing: a
+    browser still gets the page, the state and the event stream at once; the half-sent
+    requests are answered 408 and closed after the request timeout."""
+    with (
+        LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,
+        ViewerServer(sensor, port=0, request_timeout_s=2.0) as viewer,
+    ):
+        port = viewer.port
+        host = f"Host: 127.0.0.1:{port}\r\n"
+        wait_until(lambda: sensor.stats().readings >= 1, 30, "a reading")
+        slow = _half_sent(port, 40, partial)
+        opened = time.monotonic()
+        try:
+            time.sleep(0.3)  # every one of them is accepted and waiting
+            for path in ("/", "/api/state", "/api/config"):
+                start = time.monotonic()
+                code, body = request(port, f"GET {path} HTTP/1.1\r\n{host}\r\n".encode(), 2.0)
+                assert (code, time.monotonic() - start < 1.0) == (200, True), (path, body[:80])
+            assert json.loads(request(port, f"GET /api/state HTTP/1.0\r\n{host}\r\n".encode())[1])[
+                "status"
+            ]["state"]
+            with socket.create_connection(("127.0.0.1", port), timeout=2.0) as events:
+                start = time.monotonic()
+                events.sendall(f"GET /events HTTP/1.1\r\n{host}\r\n".encode())
+                data = b""
+                while b"\ndata: {" not in data:
+                    data += events.recv(65536)
+                assert data.startswith(b"HTTP/1.0 200") and b"text/event-stream" in data
+                assert time.monotonic() - start < 1.0
+            answers = [_closed_within(s, 5.0) for s in slow]
+            waited = time.monotonic() - opened
+        finally:
+            for s in slow:
+                s.close()
+    assert all(a is not None for a in answers), "a half-sent request was never closed"
+    assert all(a.startswith(b"HTTP/1.0 408") for a in answers), answers[0]
+    assert 2.0 <= waited < 5.0, waited
+
+
+def test_a_crowd_of_half_sent_requests_pushes_out_only_its_oldest(model):
+    """More half-sent requests than the viewer keeps open (256): each new connection closes
+    the oldest half-sent one, so a browser is still served and the server holds no more."""
+    from beadsight.live.outputs.viewer.http import MAX_OPEN_CONNECTIONS
+
+    with (
+        LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,
+        ViewerServer(sensor, port=0) as viewer,
+    ):
+        port = viewer.port
+        slow = _half_sent(port, MAX_OPEN_CONNECTIONS + 44, b"GET / HTTP/1.1\r\n")
+        try:
+            wait_until(lambda: viewer._httpd.evicted >= 44, 10, "the oldest closed")
+            code, _ = request(
+                port, f"GET /api/state HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode(), 2.0
+            )
+            assert code == 200
+            assert viewer._httpd.open_connections <= MAX_OPEN_CONNECTIONS
+            # the first ones were closed (without an answer), the newest are still open
+            assert _closed_within(slow[0], 2.0) == b""
+            assert _closed_within(slow[-1], 0.2) is None
+        finally:
+            for s in slow:
+                s.close()

@@ -78,11 +78,12 @@ class Budget:
 
     def record(self) -> dict:
         """What metrics.json says about the budget."""
+        elapsed = self.elapsed()
         return {
             "budget_s": round(self.total_s, 1),
-            "seconds": round(self.elapsed(), 1),
+            "seconds": round(elapsed, 1),
             "stages_s": {k: round(v, 1) for k, v in self.spent.items()},
-            "within_budget": self.elapsed() <= self.total_s,
+            "within_budget": elapsed <= self.total_s,
         }
 
 

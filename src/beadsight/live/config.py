@@ -18,6 +18,7 @@ VIEWER_MAX_KPA = 150.0  # top of the fixed colour scale (about an 18 N finger pr
 FOXGLOVE_PORT = 8765  # the Foxglove WebSocket server's usual port
 FOXGLOVE_MAX_CLIENTS = 4  # Foxglove clients served at once (more are refused with 503)
 MAX_AGE_S = 0.5  # an output never hands a client a reading older than this (the slow-client rule)
+HEALTH_PERIOD_S = 1.0  # health is published and recorded this often while readings flow (ROS: 1 Hz)
 ROS_NAMESPACE = "/beadsight"  # ROS 2 topics and Foxglove channels live under it
 MAX_DOMAIN_ID = 232  # the highest ROS_DOMAIN_ID whose DDS ports fit (ROS 2 docs: Linux)
 MAX_PORT = 65535

@@ -24,14 +24,13 @@ import time
 from collections import deque
 from typing import Any
 
-from beadsight.live.config import MAX_AGE_S, check_positive
+from beadsight.live.config import HEALTH_PERIOD_S, MAX_AGE_S, check_positive
 from beadsight.live.ros.messages import health_report
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_QUEUE_SIZE = 4  # updates waiting for the worker before the oldest is dropped
 FINISH_TIMEOUT_S = 5.0  # finish() waits this long for the worker to drain
-HEALTH_PERIOD_S = 1.0  # the health topic repeats this often while readings flow (ROS: 1 Hz)
 UPDATE, STATUS = "update", "status"
 
 

@@ -19,10 +19,8 @@ Topics, message contents and units are those of :mod:`beadsight.live.ros.message
 
 from __future__ import annotations
 
-import functools
 import logging
 import os
-import typing
 from collections.abc import Mapping
 from typing import Any
 
@@ -31,8 +29,9 @@ import numpy as np
 from beadsight.errors import BeadSightError
 from beadsight.live.config import MAX_AGE_S, MAX_DOMAIN_ID, check_domain, check_namespace
 from beadsight.live.outputs.base import DEFAULT_QUEUE_SIZE, OutputListener
+from beadsight.live.outputs.ros2_graph import RosGraph, participant_qos
 from beadsight.live.ros import messages as msg
-from beadsight.live.ros.types import TOPIC_TYPES, idl_structs
+from beadsight.live.ros.types import TOPIC_TYPES, build_struct, idl_structs
 
 logger = logging.getLogger(__name__)
 
@@ -63,26 +62,6 @@ def domain_from_environment(environ: Mapping[str, str] = os.environ) -> int:
             f"{DOMAIN_ENV}={text!r}: expected an integer 0..{MAX_DOMAIN_ID}"
         ) from None
     return check_domain(value, DOMAIN_ENV)
-
-
-@functools.cache
-def _hints(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
-
-
-def _build(cls: type, value: Any) -> Any:
-    """An IDL struct instance from a ros_messages dict (nested dicts and lists of dicts)."""
-    if not isinstance(value, dict):
-        return value
-    hints = _hints(cls)
-    out = {}
-    for name, sub in hints.items():
-        item = value[name]
-        if isinstance(item, list) and item and isinstance(item[0], dict):
-            out[name] = [_build(typing.get_args(sub)[0], x) for x in item]
-        else:
-            out[name] = _build(sub, item)
-    return cls(**out)
 
 
 def default_qos() -> Any:
@@ -125,7 +104,8 @@ class Ros2Publisher(OutputListener):
         from cyclonedds.pub import DataWriter
         from cyclonedds.topic import Topic
 
-        self._participant = DomainParticipant(domain_id)
+        self._participant = DomainParticipant(domain_id, qos=participant_qos())
+        self.guid = self._participant.guid  # the DDS participant's GUID (its gid in ROS 2)
         self._entities: list[Any] = []  # topics and writers, deleted in close()
         self._writers: dict[str, tuple[Any, type]] = {}
         qos = default_qos()
@@ -137,6 +117,13 @@ class Ros2Publisher(OutputListener):
             writer = DataWriter(self._participant, topic, qos=qos)
             self._entities += [writer, topic]
             self._writers[name] = (writer, cls)
+        self.graph = RosGraph(
+            self._participant,
+            self.namespace,
+            {DDS_TOPIC_PREFIX + self._topic(n): self._topic(n) for n in self._writers},
+            [writer for writer, _cls in self._writers.values()],
+        )
+        self._entities = [*self.graph.entities(), *self._entities]
         super().__init__(max_age_s=max_age_s, queue_size=queue_size)
 
     def _topic(self, name: str) -> str:
@@ -155,7 +142,7 @@ class Ros2Publisher(OutputListener):
 
     def _write(self, name: str, message: dict[str, Any]) -> None:
         writer, cls = self._writers[name]
-        writer.write(_build(cls, message))
+        writer.write(build_struct(cls, message))
 
     def publish(self, update: Any) -> None:
         r = update.reading
@@ -165,7 +152,7 @@ class Ros2Publisher(OutputListener):
         cop = np.asarray(r.cop_mm, dtype=np.float64).reshape(2)
         if np.all(np.isfinite(cop)):
             self._write(msg.COP, msg.point_message(cop, t))
-        self._write(msg.CONTACT_AREA, msg.area_message(r.contact_area_mm2))
+        self._write(msg.CONTACT_AREA, msg.area_message(r.contact_area_mm2, t))
         if np.isfinite(update.reference_force_n):
             self._write(msg.REFERENCE_FORCE, msg.wrench_message(update.reference_force_n, t))
         if self.camera:
@@ -177,6 +164,7 @@ class Ros2Publisher(OutputListener):
     def close(self) -> None:
         """Delete the writers, topics and participant now (Cyclone would on collection);
         deleting a writer first lets reliable readers acknowledge what it wrote."""
+        self.graph.close()
         self._writers.clear()
         entities, self._entities = self._entities, []
         participant, self._participant = self._participant, None

@@ -14,8 +14,15 @@ topic                          type                             content
 ``/beadsight/cop``             ``geometry_msgs/msg/PointStamped``   centre of pressure, m;
                                                                 only for readings that
                                                                 have one (non-zero map)
+``/beadsight/contact_area``    ``geometry_msgs/msg/Vector3Stamped``  ``vector.x`` =
+                                                                contact area, m^2
 ``/beadsight/reference_force`` ``geometry_msgs/msg/WrenchStamped``  true force when the
                                                                 source knows it (sim)
+``/beadsight/health``          ``diagnostic_msgs/msg/DiagnosticArray``  the sensor's state
+                                                                and drift health, on each
+                                                                change and once a second
+                                                                (live recordings only: a
+                                                                readings file keeps none)
 =============================  ===============================  ==========================
 
 The ``beadsight`` frame: origin at the sensor centre, x and y along the printer's X and Y
@@ -40,6 +47,8 @@ from beadsight.live.recording.partial import PartialWriter, ReadingLike
 from beadsight.live.recording.readings import open_readings
 from beadsight.live.ros import messages as msg
 from beadsight.live.ros.messages import (
+    area_message,
+    diagnostics_message,
     image_message,
     point_message,
     unix_ns,
@@ -53,6 +62,8 @@ TOPIC_PRESSURE = msg.topic(msg.DEFAULT_NAMESPACE, msg.PRESSURE)
 TOPIC_FORCE = msg.topic(msg.DEFAULT_NAMESPACE, msg.FORCE)
 TOPIC_COP = msg.topic(msg.DEFAULT_NAMESPACE, msg.COP)
 TOPIC_REFERENCE_FORCE = msg.topic(msg.DEFAULT_NAMESPACE, msg.REFERENCE_FORCE)
+TOPIC_CONTACT_AREA = msg.topic(msg.DEFAULT_NAMESPACE, msg.CONTACT_AREA)
+TOPIC_HEALTH = msg.topic(msg.DEFAULT_NAMESPACE, msg.HEALTH)
 CHUNK_BYTES = 1024 * 1024  # messages are compressed and written in chunks of about this size
 MESSAGE_OVERHEAD_BYTES = 512  # most bytes a message adds to an MCAP file beyond its payload
 SUMMARY_BYTES = 16 * 1024  # MCAP summary without chunk indexes (schemas, channels, ...)
@@ -156,29 +167,33 @@ class McapReadingsWriter(PartialWriter):
             },
         )
 
-    def _messages(self, reading: ReadingLike, reference_force_n: float) -> list[tuple]:
-        """(topic, schema, message) of one reading."""
+    def _messages(
+        self, reading: ReadingLike, reference_force_n: float, health: dict[str, Any] | None
+    ) -> list[tuple]:
+        """(topic, schema, message) of one reading (and of ``health``, a health report)."""
         t = float(reading.timestamp_s)
+        area = area_message(reading.contact_area_mm2, t)
         out = [
-            (TOPIC_PRESSURE, "sensor_msgs/msg/Image", image_message(reading.pressure_kpa, t)),
-            (TOPIC_FORCE, "geometry_msgs/msg/WrenchStamped", wrench_message(reading.force_n, t)),
+            (TOPIC_PRESSURE, TOPIC_TYPES[msg.PRESSURE], image_message(reading.pressure_kpa, t)),
+            (TOPIC_FORCE, TOPIC_TYPES[msg.FORCE], wrench_message(reading.force_n, t)),
+            (TOPIC_CONTACT_AREA, TOPIC_TYPES[msg.CONTACT_AREA], area),
         ]
         cop = np.asarray(reading.cop_mm, dtype=np.float64).reshape(2)
         if np.all(np.isfinite(cop)):
-            out.append((TOPIC_COP, "geometry_msgs/msg/PointStamped", point_message(cop, t)))
+            out.append((TOPIC_COP, TOPIC_TYPES[msg.COP], point_message(cop, t)))
         if math.isfinite(reference_force_n):
-            out.append(
-                (
-                    TOPIC_REFERENCE_FORCE,
-                    "geometry_msgs/msg/WrenchStamped",
-                    wrench_message(reference_force_n, t),
-                )
-            )
+            reference = wrench_message(reference_force_n, t)
+            out.append((TOPIC_REFERENCE_FORCE, TOPIC_TYPES[msg.REFERENCE_FORCE], reference))
+        if health is not None:
+            out.append((TOPIC_HEALTH, TOPIC_TYPES[msg.HEALTH], diagnostics_message(health)))
         return out
 
     @staticmethod
     def _size(message: dict) -> int:
-        """Most bytes ``message`` adds to a chunk (payload plus record and index overhead)."""
+        """Most bytes ``message`` adds to a chunk (payload plus record and index overhead;
+        a health message's text counted from its JSON, an upper bound of its CDR)."""
+        if "status" in message:
+            return len(json.dumps(message, default=str)) + MESSAGE_OVERHEAD_BYTES
         return len(message.get("data", b"")) + MESSAGE_OVERHEAD_BYTES
 
     def _write_messages(self, messages: list[tuple], t_ns: int) -> None:
@@ -198,9 +213,16 @@ class McapReadingsWriter(PartialWriter):
             else:
                 self._pending += self._size(message)
 
-    def _add(self, reading: ReadingLike, reference_force_n: float, latency_s: float | None) -> None:
-        """Write one reading's messages (``latency_s`` is accepted for interface parity)."""
-        messages = self._messages(reading, reference_force_n)
+    def _add(
+        self,
+        reading: ReadingLike,
+        reference_force_n: float,
+        latency_s: float | None,
+        health: dict[str, Any] | None,
+    ) -> None:
+        """Write one reading's messages (``latency_s`` is accepted for interface parity);
+        all are logged at the reading's capture time."""
+        messages = self._messages(reading, reference_force_n, health)
         need = (
             self._pending
             + sum(self._size(m) for _t, _s, m in messages)

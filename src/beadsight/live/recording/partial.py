@@ -125,18 +125,27 @@ class PartialWriter(ClosesOrAborts):
         reading: ReadingLike,
         reference_force_n: float = math.nan,
         latency_s: float | None = None,
+        health: dict[str, Any] | None = None,
     ) -> None:
         """Record one reading: ``reference_force_n`` is the true force, N (NaN: unknown),
-        ``latency_s`` capture -> reading available (default: ``reading.latency_s``).
+        ``latency_s`` capture -> reading available (default: ``reading.latency_s``),
+        ``health`` a :func:`~beadsight.live.ros.messages.health_report` to record with it
+        (None: none now; the recorder hands one on each change and once a second).
 
         Raises :class:`~beadsight.files.WriteError` once the disk is full.
         """
         self._check_open()
-        self._add(reading, reference_force_n, latency_s)
+        self._add(reading, reference_force_n, latency_s, health)
         self._count += 1
         self._after_add()
 
-    def _add(self, reading: ReadingLike, reference_force_n: float, latency_s: float | None) -> None:
+    def _add(
+        self,
+        reading: ReadingLike,
+        reference_force_n: float,
+        latency_s: float | None,
+        health: dict[str, Any] | None,
+    ) -> None:
         """Buffer or write one reading (``self._count`` readings came before it)."""
         raise NotImplementedError
 

@@ -131,8 +131,15 @@ class ReadingsWriter(PartialWriter):
         self._ds["pressure_kpa"].attrs["unit"] = "kPa"
         self._f.flush()
 
-    def _add(self, reading: ReadingLike, reference_force_n: float, latency_s: float | None) -> None:
-        """Buffer one reading; ``reading.pressure_kpa`` must be (S, S) with S = geometry size."""
+    def _add(
+        self,
+        reading: ReadingLike,
+        reference_force_n: float,
+        latency_s: float | None,
+        health: dict[str, Any] | None,
+    ) -> None:
+        """Buffer one reading; ``reading.pressure_kpa`` must be (S, S) with S = geometry size.
+        (``health`` is not kept: this format has no health; MCAP recordings keep it.)"""
         s = self.geometry.image_size_px
         pressure = np.asarray(reading.pressure_kpa, dtype=np.float32)
         if pressure.shape != (s, s):

@@ -15,6 +15,10 @@ button share, whatever the format (HDF5 readings file, MCAP).
   that fails anyway (another program filled the disk meanwhile) raises the same error.
 * **Writing never slows sensing.** :class:`Recorder` is a live listener that queues updates
   and writes them on its own thread; a failure ends the recording, not the sensing.
+* **Health with the readings.** The recorder hands the writer a health report (the sensor's
+  state and drift health, :func:`~beadsight.live.ros.messages.health_report`, stamped with
+  the reading's capture time) whenever either state changes, else once every
+  :data:`~beadsight.live.config.HEALTH_PERIOD_S` of capture time (MCAP keeps it).
 """
 
 from __future__ import annotations
@@ -26,11 +30,13 @@ from pathlib import Path
 from typing import Any
 
 from beadsight.errors import BeadSightError, ConfigError
+from beadsight.live.config import HEALTH_PERIOD_S
 from beadsight.live.recording.mcap import McapReadingsWriter
 from beadsight.live.recording.partial import (
     PartialWriter,
 )
 from beadsight.live.recording.readings import ReadingsWriter
+from beadsight.live.ros.messages import health_report
 
 logger = logging.getLogger(__name__)
 
@@ -71,16 +77,29 @@ class Recorder:
         self.queue = UpdateQueue(maxsize)
         self.error: BaseException | None = None
         self._on_error = on_error
+        self._status: Any = None  # the sensor's newest LiveStatus
+        self._health_key: tuple | None = None  # (sensor state, health state) last recorded
+        self._health_due = -float("inf")  # capture time (s) of the next periodic report
         self._thread = threading.Thread(target=self._run, name="beadsight-recorder", daemon=True)
         self._thread.start()
 
     # listener interface: only queue
     def push(self, update: Any) -> None:
-        if self.error is None:
-            self.queue.push(update)
+        if self.error is None:  # with the sensor's state as the reading was made
+            self.queue.push((update, self._status))
 
     def status(self, status: Any) -> None:
-        pass
+        self._status = status  # (sensing thread) goes with the next readings
+
+    def _health(self, update: Any, status: Any) -> dict[str, Any] | None:
+        """The health report to record with ``update``, or None (nothing new, not due)."""
+        health = getattr(update, "health", None)
+        key = (getattr(status, "state", None), getattr(health, "state", None))
+        t = float(update.reading.timestamp_s)
+        if key == self._health_key and t < self._health_due:
+            return None
+        self._health_key, self._health_due = key, t + HEALTH_PERIOD_S
+        return health_report(status, health, t)
 
     def finish(self) -> None:
         self.queue.finish()
@@ -89,14 +108,16 @@ class Recorder:
         try:
             while True:
                 try:
-                    update = self.queue.get()
+                    item = self.queue.get()
                 except EOFError:
                     break
-                if update is not None:
+                if item is not None:
+                    update, status = item
                     self.writer.append(
                         update.reading,
                         reference_force_n=update.reference_force_n,
                         latency_s=update.latency_s,
+                        health=self._health(update, status),
                     )
             self.writer.close()
         except BaseException as e:  # disk full, file appeared: report, keep the partial file

@@ -14,7 +14,8 @@ topic (under the namespace) type                                  content
                                                                   force, N (other components 0)
 ``cop``                    ``geometry_msgs/msg/PointStamped``     centre of pressure, m (only when
                                                                   the map has pressure)
-``contact_area``           ``std_msgs/msg/Float32``               contact area, m^2
+``contact_area``           ``geometry_msgs/msg/Vector3Stamped``   ``vector.x`` = contact area, m^2
+                                                                  (y, z 0)
 ``health``                 ``diagnostic_msgs/msg/DiagnosticArray`` the sensor's state and its
                                                                   health with figures
 ``camera``                 ``sensor_msgs/msg/Image``              model-input frame, ``rgb8``
@@ -144,9 +145,14 @@ def point_message(cop_mm: np.ndarray, timestamp_s: float) -> dict[str, Any]:
     }
 
 
-def area_message(contact_area_mm2: float) -> dict[str, Any]:
-    """``std_msgs/msg/Float32``: contact area in m^2."""
-    return {"data": float(contact_area_mm2) * M2_PER_MM2}
+def area_message(contact_area_mm2: float, timestamp_s: float) -> dict[str, Any]:
+    """``geometry_msgs/msg/Vector3Stamped``: ``vector.x`` = contact area in m^2 (y, z = 0).
+
+    ROS 2's common messages have no stamped scalar for an area; Vector3Stamped is in every
+    ROS install (``ros2 topic echo`` needs no package of ours) and carries the header, so the
+    area has the capture time of its reading like every other topic."""
+    area_m2 = float(contact_area_mm2) * M2_PER_MM2
+    return {"header": header(timestamp_s), "vector": {"x": area_m2, "y": 0.0, "z": 0.0}}
 
 
 def finite_or_none(value: Any) -> Any:

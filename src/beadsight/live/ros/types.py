@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import logging
 import types
+import typing
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,11 +22,15 @@ from beadsight.live.ros import messages as msg
 logger = logging.getLogger(__name__)
 
 STORE = "ROS2_HUMBLE"  # rosbags' type store the definitions come from (stable since Humble)
+# the ROS graph's discovery message (what rmw_cyclonedds publishes on ros_discovery_info);
+# its Gid is char[24] up to Humble and uint8[16] since Iron: this follows Jazzy (the LTS)
+DISCOVERY_STORE = "ROS2_JAZZY"
+DISCOVERY_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
 TOPIC_TYPES = {  # topic name (under the namespace) -> ROS 2 type (see ros.messages)
     msg.PRESSURE: "sensor_msgs/msg/Image",
     msg.FORCE: "geometry_msgs/msg/WrenchStamped",
     msg.COP: "geometry_msgs/msg/PointStamped",
-    msg.CONTACT_AREA: "std_msgs/msg/Float32",
+    msg.CONTACT_AREA: "geometry_msgs/msg/Vector3Stamped",
     msg.HEALTH: "diagnostic_msgs/msg/DiagnosticArray",
     msg.REFERENCE_FORCE: "geometry_msgs/msg/WrenchStamped",
     msg.CAMERA: "sensor_msgs/msg/Image",
@@ -61,10 +66,10 @@ def _require(package: str, what: str) -> Any:
 
 
 @functools.cache
-def typestore() -> Any:
-    """rosbags' type store of :data:`STORE`."""
+def typestore(store: str = STORE) -> Any:
+    """rosbags' type store ``store`` (default :data:`STORE`)."""
     typesys = _require("rosbags.typesys", "ROS 2 message types")
-    return typesys.get_typestore(getattr(typesys.Stores, STORE))
+    return typesys.get_typestore(getattr(typesys.Stores, store))
 
 
 def message_definition(ros_type: str) -> str:
@@ -93,13 +98,27 @@ def idl_structs() -> dict[str, type]:
     return {t: built[t] for t in TOPIC_TYPES.values()}
 
 
-def _struct(ros_type: str, built: dict[str, type]) -> type:
+@functools.cache
+def discovery_struct() -> type:
+    """The Cyclone DDS struct of :data:`DISCOVERY_TYPE` (from :data:`DISCOVERY_STORE`)."""
+    _require("cyclonedds.idl", "--ros2")
+    return _struct(DISCOVERY_TYPE, {}, DISCOVERY_STORE)
+
+
+def gid_bytes() -> int:
+    """Bytes of a ``rmw_dds_common/msg/Gid`` in :data:`DISCOVERY_STORE` (16 since Iron)."""
+    _constants, fields = typestore(DISCOVERY_STORE).fielddefs["rmw_dds_common/msg/Gid"]
+    (_name, (_kind, (_element, length))), *_ = fields
+    return int(length)
+
+
+def _struct(ros_type: str, built: dict[str, type], store: str = STORE) -> type:
     if ros_type in built:
         return built[ros_type]
     from cyclonedds.idl import IdlStruct
 
-    _constants, fields = typestore().fielddefs[ros_type]
-    annotations = {name: _field_type(desc, built) for name, desc in fields}
+    _constants, fields = typestore(store).fielddefs[ros_type]
+    annotations = {name: _field_type(desc, built, store) for name, desc in fields}
     cls = types.new_class(
         ros_type.rsplit("/", 1)[1],
         (IdlStruct,),
@@ -110,14 +129,14 @@ def _struct(ros_type: str, built: dict[str, type]) -> type:
     return built[ros_type]
 
 
-def _field_type(desc: tuple, built: dict[str, type]) -> Any:
+def _field_type(desc: tuple, built: dict[str, type], store: str = STORE) -> Any:
     """A rosbags field description (Nodetype, details) -> the Cyclone IDL annotation."""
     from cyclonedds.idl import types as idl
     from rosbags.typesys.base import Nodetype
 
     kind, rest = desc
     if kind == Nodetype.NAME:
-        return _struct(rest, built)
+        return _struct(rest, built, store)
     if kind == Nodetype.BASE:
         name, bound = rest
         if name == "string":
@@ -126,13 +145,10 @@ def _field_type(desc: tuple, built: dict[str, type]) -> Any:
             raise BeadSightError(f"ROS 2 primitive {name!r}: no Cyclone DDS type for it")
         return bool if name == "bool" else getattr(idl, _PRIMITIVES[name])
     sub, length = rest
+    element = _field_type(sub, built, store)
     if kind == Nodetype.ARRAY:
-        return idl.array[_field_type(sub, built), length]
-    return (
-        idl.sequence[_field_type(sub, built), length]
-        if length
-        else idl.sequence[_field_type(sub, built)]
-    )
+        return idl.array[element, length]
+    return idl.sequence[element, length] if length else idl.sequence[element]
 
 
 def fast_byte_sequences(image_type: type) -> bool:
@@ -161,3 +177,23 @@ def fast_byte_sequences(image_type: type) -> bool:
     except Exception as e:
         logger.warning("ros2: fast image serialisation unavailable (%s); publishing is slower", e)
         return False
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def build_struct(cls: type, value: Any) -> Any:
+    """An IDL struct instance of ``cls`` from a message dict of :mod:`beadsight.live.ros.messages`
+    (nested dicts and lists of dicts, laid out like the ROS 2 message)."""
+    if not isinstance(value, dict):
+        return value
+    out = {}
+    for name, sub in _hints(cls).items():
+        item = value[name]
+        if isinstance(item, list) and item and isinstance(item[0], dict):
+            out[name] = [build_struct(typing.get_args(sub)[0], x) for x in item]
+        else:
+            out[name] = build_struct(sub, item)
+    return cls(**out)

@@ -1,17 +1,23 @@
-"""The viewer's HTTP side: a small threaded server, hardened for a page on localhost.
+"""The viewer's HTTP side: one event loop reads every request, hardened for a page on localhost.
 
 * **Host check (DNS rebinding).** A web page on another site can make its own name
   resolve to 127.0.0.1 and then talk to the viewer as "same origin". Its requests still
   carry its name in ``Host``, so every request whose ``Host`` is not ``localhost``,
   ``127.0.0.1``, ``[::1]``, the address the viewer is bound to, an IP address (which no
   DNS name can stand for) or a name allowed explicitly is refused with 403.
-* **Slow requests time out.** A request (line, headers and body) must arrive within
-  ``request_timeout_s`` in all, however slowly it trickles in ("slowloris").
-* **Bounded threads.** At most :data:`MAX_REQUEST_THREADS` requests are read at once; more
-  connections are answered 503 at once. ``/events`` connections leave their thread as
-  soon as their headers are sent (see :mod:`beadsight.live.outputs.viewer.events`).
-* **Strict bodies.** A missing, malformed, conflicting or too large ``Content-Length``
-  is answered 411/400/413; a body shorter than announced, 400.
+* **Half-sent requests cost nothing ("slowloris").** One thread (:class:`ViewerHTTPServer`)
+  reads every connection's request from non-blocking sockets into a buffer; only a whole
+  request (line, headers, and a body as long as its ``Content-Length``) is answered, on
+  the same thread, from memory, and the answer is written without blocking. A request
+  must arrive within ``request_timeout_s`` in all (else ``408`` and the connection is
+  closed), and at most :data:`MAX_OPEN_CONNECTIONS` connections are open at once: a new
+  one closes the oldest that has not sent its request yet, so a crowd of half-sent
+  requests only ever pushes out its own oldest members, never a browser whose request
+  arrives whole in a millisecond. ``/events`` connections leave this loop once their
+  headers are sent (see :mod:`beadsight.live.outputs.viewer.events`).
+* **Strict sizes.** Headers over :data:`MAX_HEADER_BYTES` are answered 431. A missing,
+  malformed, conflicting or too large ``Content-Length`` is answered 411/400/413; a body
+  shorter than announced, 400.
 """
 
 from __future__ import annotations
@@ -20,11 +26,13 @@ import io
 import ipaddress
 import json
 import logging
+import re
+import selectors
 import socket
 import threading
 import time
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from typing import Any
 
 from beadsight.errors import BeadSightError
@@ -33,14 +41,28 @@ logger = logging.getLogger(__name__)
 
 REQUEST_TIMEOUT_S = 5.0  # a whole request must arrive within this
 WRITE_TIMEOUT_S = 5.0  # a response that the client does not take within this is dropped
-MAX_REQUEST_THREADS = 32  # requests read at once; more connections get 503 at once
+MAX_OPEN_CONNECTIONS = 256  # connections read or answered at once; more close the oldest
+MAX_HEADER_BYTES = 16 * 1024  # request line and headers
 MAX_REQUEST_BYTES = 4096  # largest request body
 ACCEPT_BACKLOG = 128  # connections the kernel holds before accept() (a page opens several)
+RECV_BYTES = 65536
+POLL_S = 0.25  # the loop looks at deadlines (and shutdown) at least this often
 LOCAL_HOSTS = frozenset({"localhost", "127.0.0.1", "::1"})
-BUSY = (
-    b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: application/json\r\n"
-    b"Retry-After: 1\r\nContent-Length: 36\r\nConnection: close\r\n\r\n"
-    b'{"error": "viewer busy, retry soon"}'
+_HEADER_END = re.compile(rb"\r?\n\r?\n")
+_CONTENT_LENGTH = re.compile(rb"^content-length:[ \t]*([0-9]+)[ \t]*\r?$", re.I | re.M)
+
+
+def _canned(status: HTTPStatus, error: str) -> bytes:
+    body = json.dumps({"error": error}).encode()
+    return (
+        f"HTTP/1.0 {status.value} {status.phrase}\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+    ).encode() + body
+
+
+TIMED_OUT = _canned(HTTPStatus.REQUEST_TIMEOUT, "the request did not arrive in time")
+HEADERS_TOO_LARGE = _canned(
+    HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE, f"headers over {MAX_HEADER_BYTES} bytes"
 )
 
 
@@ -67,100 +89,225 @@ def host_allowed(header: str | None, allowed: frozenset[str]) -> bool:
     return True
 
 
-class _DeadlineReader(io.RawIOBase):
-    """Reads a socket, failing with TimeoutError once ``deadline`` (monotonic) has passed."""
-
-    def __init__(self, sock: socket.socket, deadline: float):
-        self._sock, self._deadline = sock, deadline
-
-    def readable(self) -> bool:
+def request_complete(data: bytes) -> bool | None:
+    """Whether ``data`` holds a whole request: True, False (more to come), or None (headers
+    too large). The body counts when its ``Content-Length`` is one whole number within
+    :data:`MAX_REQUEST_BYTES`; anything else is answered by the handler at once."""
+    end = _HEADER_END.search(data)
+    if end is None:
+        return None if len(data) > MAX_HEADER_BYTES else False
+    if end.start() > MAX_HEADER_BYTES:
+        return None
+    lengths = set(_CONTENT_LENGTH.findall(data[: end.end()]))
+    if len(lengths) != 1:
         return True
-
-    def readinto(self, buffer) -> int:
-        remaining = self._deadline - time.monotonic()
-        if remaining <= 0:
-            raise TimeoutError("request not received in time")
-        self._sock.settimeout(remaining)
-        return self._sock.recv_into(buffer)
+    length = int(lengths.pop())
+    return length > MAX_REQUEST_BYTES or len(data) - end.end() >= length
 
 
-class ViewerHTTPServer(ThreadingHTTPServer):
-    """Serves :class:`ViewerHandler` requests for ``viewer`` with a bounded thread count."""
+class _Connection:
+    """A connection of the loop: reading its request, then writing its answer."""
 
-    daemon_threads = False
-    block_on_close = True  # server_close() waits for request threads (bounded by timeouts)
-    allow_reuse_address = True
-    request_queue_size = ACCEPT_BACKLOG
+    __slots__ = ("sock", "address", "data", "deadline", "out", "reading")
 
-    def __init__(self, address, viewer: Any, allowed_hosts: frozenset[str]):
+    def __init__(self, sock: socket.socket, address: Any, deadline: float):
+        self.sock, self.address, self.deadline = sock, address, deadline
+        self.data = bytearray()
+        self.out = memoryview(b"")
+        self.reading = True
+
+
+class ViewerHTTPServer:
+    """Serves :class:`ViewerHandler` requests for ``viewer`` from one event loop.
+
+    ``serve_forever()`` runs the loop (on the viewer's thread) until :meth:`shutdown`;
+    :meth:`server_close` then closes every connection and the listening socket.
+    """
+
+    def __init__(self, address: tuple[str, int], viewer: Any, allowed_hosts: frozenset[str]):
         self.viewer = viewer
         self.allowed_hosts = allowed_hosts
-        self._slots = threading.BoundedSemaphore(MAX_REQUEST_THREADS)
-        self._active: set[socket.socket] = set()
-        self._handed_off: set[socket.socket] = set()
-        self._lock = threading.Lock()
-        super().__init__(address, ViewerHandler)
-
-    def process_request(self, request, client_address) -> None:
-        if not self._slots.acquire(blocking=False):
-            request.setblocking(False)
-            try:
-                request.send(BUSY)
-            except OSError:
-                pass
-            self.shutdown_request(request)
-            return
-        with self._lock:
-            self._active.add(request)
-        super().process_request(request, client_address)
-
-    def process_request_thread(self, request, client_address) -> None:
+        family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
+        self.socket = socket.socket(family, socket.SOCK_STREAM)
         try:
-            super().process_request_thread(request, client_address)
+            self.socket.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            self.socket.bind(address)
+            self.socket.listen(ACCEPT_BACKLOG)
+        except OSError:
+            self.socket.close()
+            raise
+        self.socket.setblocking(False)
+        self.server_address = self.socket.getsockname()
+        self._selector = selectors.DefaultSelector()
+        self._selector.register(self.socket, selectors.EVENT_READ)
+        self._open: dict[socket.socket, _Connection] = {}  # in order of arrival
+        self._stop = threading.Event()
+        self._stopped = threading.Event()
+        self.evicted = 0  # half-sent requests closed to make room
+        self.timed_out = 0  # requests that did not arrive in time
+
+    @property
+    def open_connections(self) -> int:
+        return len(self._open)
+
+    def serve_forever(self) -> None:
+        try:
+            while not self._stop.is_set():
+                for key, mask in self._selector.select(POLL_S):
+                    conn = self._open.get(key.fileobj)  # (None: closed earlier in this batch)
+                    if key.fileobj is self.socket:
+                        self._accept()
+                    elif conn is not None and conn.reading:
+                        self._read(conn)
+                    elif conn is not None and mask & selectors.EVENT_WRITE:
+                        self._write(conn)
+                self._expire(time.monotonic())
         finally:
-            with self._lock:
-                self._active.discard(request)
-            self._slots.release()
+            self._stopped.set()
 
-    def hand_off(self, request: socket.socket) -> None:
-        """Keep ``request`` open after its handler returns (an event stream's)."""
-        with self._lock:
-            self._handed_off.add(request)
-
-    def shutdown_request(self, request) -> None:
-        with self._lock:
-            if request in self._handed_off:
-                self._handed_off.discard(request)
-                return
-        super().shutdown_request(request)
+    def shutdown(self) -> None:
+        self._stop.set()
+        self._stopped.wait()
 
     def server_close(self) -> None:
-        with self._lock:
-            active = list(self._active)
-        for sock in active:  # wake handlers blocked reading a request
+        for conn in list(self._open.values()):
+            self._close(conn)
+        self._selector.close()
+        self.socket.close()
+
+    # --- the loop --------------------------------------------------------------------
+    def _accept(self) -> None:
+        for _ in range(ACCEPT_BACKLOG):
             try:
-                sock.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
-        super().server_close()
+                sock, address = self.socket.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as e:  # out of file descriptors: leave it in the backlog
+                logger.warning("viewer: cannot accept a connection (%s)", e)
+                return
+            if len(self._open) >= MAX_OPEN_CONNECTIONS:
+                self._evict()
+            sock.setblocking(False)
+            deadline = time.monotonic() + self.viewer.request_timeout_s
+            self._open[sock] = _Connection(sock, address, deadline)
+            self._selector.register(sock, selectors.EVENT_READ)
+
+    def _evict(self) -> None:
+        """Close the oldest connection still sending its request (else the oldest)."""
+        oldest = next((c for c in self._open.values() if c.reading), None)
+        oldest = oldest or next(iter(self._open.values()))
+        self.evicted += 1
+        if self.evicted == 1 or self.evicted % 1000 == 0:
+            logger.warning(
+                "viewer: %d connections at once; closed %d half-sent requests (oldest first)",
+                MAX_OPEN_CONNECTIONS,
+                self.evicted,
+            )
+        self._close(oldest)
+
+    def _read(self, conn: _Connection) -> None:
+        try:
+            chunk = conn.sock.recv(RECV_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            return self._close(conn)
+        conn.data += chunk
+        complete = request_complete(bytes(conn.data))
+        if complete is None:
+            return self._answer(conn, HEADERS_TOO_LARGE)
+        if complete or (not chunk and _HEADER_END.search(conn.data)):
+            return self._handle(conn)  # whole, or ended early: the handler says what is wrong
+        if not chunk:
+            self._close(conn)
+
+    def _handle(self, conn: _Connection) -> None:
+        handler = ViewerHandler(conn.sock, conn.address, self, bytes(conn.data))
+        if handler.events_headers is None:
+            return self._answer(conn, handler.response)
+        # an event stream: its headers go now (a fresh socket takes them), then the
+        # broadcaster owns the socket
+        events = self.viewer.events
+        self._forget(conn)
+        try:
+            conn.sock.send(handler.events_headers)
+        except OSError:
+            events.release()
+            return _close_socket(conn.sock)
+        events.add(conn.sock)
+
+    def _answer(self, conn: _Connection, response: bytes) -> None:
+        conn.reading, conn.data = False, bytearray()
+        conn.out = memoryview(response)
+        conn.deadline = time.monotonic() + WRITE_TIMEOUT_S
+        self._write(conn)
+
+    def _write(self, conn: _Connection) -> None:
+        try:
+            sent = conn.sock.send(conn.out)
+        except (BlockingIOError, InterruptedError):
+            sent = 0
+        except OSError:
+            return self._close(conn)
+        conn.out = conn.out[sent:]
+        if not conn.out:
+            return self._close(conn)
+        # the rest when the socket takes it; what the client sends now is not read
+        self._selector.modify(conn.sock, selectors.EVENT_WRITE)
+
+    def _expire(self, now: float) -> None:
+        for conn in [c for c in self._open.values() if c.deadline <= now]:
+            if conn.reading:  # the request did not arrive in time
+                self.timed_out += 1
+                logger.debug("viewer %s: request not received in time", conn.address[0])
+                conn.deadline = now + WRITE_TIMEOUT_S
+                self._answer(conn, TIMED_OUT)
+            else:  # the client does not take its answer
+                self._close(conn)
+
+    def _forget(self, conn: _Connection) -> None:
+        if self._open.pop(conn.sock, None) is not None:
+            self._selector.unregister(conn.sock)
+
+    def _close(self, conn: _Connection) -> None:
+        self._forget(conn)
+        _close_socket(conn.sock)
+
+
+def _close_socket(sock: socket.socket) -> None:
+    try:
+        sock.shutdown(socket.SHUT_RDWR)
+    except OSError:
+        pass
+    sock.close()
 
 
 class ViewerHandler(BaseHTTPRequestHandler):
-    """The viewer's routes (see :mod:`beadsight.live.outputs.viewer.server`)."""
+    """The viewer's routes (see :mod:`beadsight.live.outputs.viewer.server`), for one whole
+    request held in memory: the answer is collected in ``response`` (bytes), or, for an
+    event stream, its headers in ``events_headers``."""
 
     server: ViewerHTTPServer
-    protocol_version = "HTTP/1.0"  # one request per connection: no idle keep-alive threads
+    protocol_version = "HTTP/1.0"  # one request per connection: no idle keep-alive
+
+    def __init__(self, sock: socket.socket, address: Any, server: ViewerHTTPServer, data: bytes):
+        self._data = data
+        self.events_headers: bytes | None = None
+        self.response = b""
+        super().__init__(sock, address, server)
 
     def setup(self) -> None:
-        super().setup()
-        deadline = time.monotonic() + self.server.viewer.request_timeout_s
-        self.rfile = io.BufferedReader(_DeadlineReader(self.connection, deadline))
+        self.connection = self.request
+        self.rfile = io.BytesIO(self._data)
+        self.wfile = io.BytesIO()
+
+    def finish(self) -> None:
+        self.response = self.wfile.getvalue()
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - stdlib name
         logger.debug("viewer %s: " + format, self.address_string(), *args)
 
     def _send(self, status: int, body: bytes, content_type: str, **headers: str) -> None:
-        self.connection.settimeout(WRITE_TIMEOUT_S)
         self.send_response(status)
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(body)))
@@ -212,19 +359,12 @@ class ViewerHandler(BaseHTTPRequestHandler):
                 Retry_After="2",
             )
             return
-        try:
-            self.connection.settimeout(WRITE_TIMEOUT_S)
-            self.send_response(HTTPStatus.OK)
-            self.send_header("Content-Type", "text/event-stream")
-            self.send_header("Cache-Control", "no-store")
-            self.send_header("Connection", "close")
-            self.end_headers()
-        except OSError:
-            events.release()
-            raise
-        self.close_connection = True
-        self.server.hand_off(self.connection)
-        events.add(self.connection)
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Type", "text/event-stream")
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("Connection", "close")
+        self.end_headers()
+        self.events_headers = self.wfile.getvalue()  # the server sends them, then hands off
 
     def _body(self) -> bytes | None:
         """The request body, or None after answering a bad Content-Length."""

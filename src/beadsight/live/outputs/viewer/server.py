@@ -12,8 +12,9 @@ Routes:
 * ``POST /api/record`` with JSON ``{"action": "start" | "stop"}`` -- start/stop
   recording readings to a new HDF5 file in ``record_dir`` (a new name each time).
 
-Requests for another ``Host`` than this machine's are refused (DNS rebinding), slow
-requests time out (see :mod:`beadsight.live.outputs.viewer.http`).
+Requests for another ``Host`` than this machine's are refused (DNS rebinding); requests
+are read by one event loop, so half-sent ones cost nothing and time out (see
+:mod:`beadsight.live.outputs.viewer.http`).
 
 A state message: ``status`` (state, message), ``stats`` (rate, latency percentiles),
 ``reading`` (force, centre of pressure, contact area, ...; null before the first),
