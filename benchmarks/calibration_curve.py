@@ -34,7 +34,7 @@ import numpy as np
 
 from beadsight.checkpoint import load_checkpoint
 from beadsight.evaluation.evaluate import evaluate
-from beadsight.evaluation.metrics import PAPER_METRICS
+from beadsight.metrics import PAPER_METRICS
 from beadsight.inference.machine import cpu_summary
 from beadsight.sim.dataset import simulate_dataset
 from beadsight.train.calibrate import base_checkpoint, calibrate

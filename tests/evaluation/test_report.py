@@ -10,9 +10,9 @@ from html.parser import HTMLParser
 import pytest
 
 from beadsight.cli import main
-from beadsight.evaluation.metrics import PAPER_METRICS, compare_with_paper
 from beadsight.evaluation.report import Figure, Link, Report, render_report, write_report
 from beadsight.files import WriteError
+from beadsight.metrics import PAPER_METRICS, compare_with_paper
 
 HOSTILE_CARD = """# Model <b>card</b>
 

@@ -10,7 +10,6 @@ import pytest
 from beadsight import PressurePredictor, PressureReading
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig
-from beadsight.evaluation.metrics import otsu_thresholds
 from beadsight.geometry import (
     centre_of_pressure_mm,
     contact_area_mm2,
@@ -20,6 +19,7 @@ from beadsight.geometry import (
 )
 from beadsight.inference.predictor import DEFAULT_FPS, PredictorSettings
 from beadsight.inference.runtimes import Backend, TorchBackend
+from beadsight.metrics import otsu_thresholds
 
 FPS = DEFAULT_FPS
 T = 15

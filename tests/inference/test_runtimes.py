@@ -17,9 +17,8 @@ from beadsight.inference.runtimes import (
     BackendUnavailableError,
     CudaGraphBackend,
     TorchBackend,
-    build_backend,
 )
-from beadsight.inference.select import create_backend
+from beadsight.inference.select import build_backend, create_backend
 
 HAS_CUDA = torch.cuda.is_available()
 

@@ -48,7 +48,7 @@ def demo_summary(
     extra: dict,
 ) -> dict:
     """What demo.json holds: what was run, on what, the metrics, timings and files."""
-    from beadsight.evaluation.metrics import PAPER_METRICS, format_metrics_table
+    from beadsight.metrics import PAPER_METRICS, format_metrics_table
 
     files = dict(
         metrics.get("files", {}), animation=ANIMATION_FILE, report=INDEX_FILE, summary=MARKER

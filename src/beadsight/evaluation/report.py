@@ -6,7 +6,7 @@
 * a title and a one-paragraph summary (what was evaluated, on what data, with which model);
 * the metrics as an HTML table beside the paper's figures and the baselines, every value
   with a paper counterpart marked better or worse than the paper
-  (:func:`beadsight.evaluation.metrics.compare_with_paper`);
+  (:func:`beadsight.metrics.compare_with_paper`);
 * notes, then the figures (animation, plots), each with a caption saying what it shows and
   how to read it;
 * an optional model card, Markdown rendered by markdown-it-py, after the results and folded;
@@ -35,18 +35,18 @@ from urllib.parse import quote
 
 from beadsight import __version__
 from beadsight.config import SensorGeometry
-from beadsight.evaluation.metrics import (
-    PAPER_METRICS,
-    REGION_GRID,
-    TABLE_ROWS,
-    compare_with_paper,
-)
 from beadsight.evaluation.plots import (
     examples_caption,
     force_traces_caption,
     region_error_caption,
 )
 from beadsight.files import atomic_write_text
+from beadsight.metrics import (
+    PAPER_METRICS,
+    REGION_GRID,
+    TABLE_ROWS,
+    compare_with_paper,
+)
 
 REPORT_FILE = "index.html"
 TEMPLATE = "report.html"  # package file beside this module

@@ -66,7 +66,7 @@ Contact
 ``contact_mask`` is ``pressure_kpa >= contact_threshold_kpa``: by default the pressure
 of the release force of :class:`~beadsight.config.ContactThresholds` (10 g) spread
 over the finger's disk, about 0.8 kPa. ``contact_method="otsu"`` keeps, of those
-pixels, Otsu's foreground (:func:`beadsight.evaluation.metrics.otsu_masks`, the
+pixels, Otsu's foreground (:func:`beadsight.metrics.otsu_masks`, the
 evaluation's IoU definition). ``has_contact`` is ``force_n >= contact_force_n``
 (default: the 50 g contact force).
 """
@@ -84,7 +84,6 @@ import numpy as np
 from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.config import ContactThresholds, SensorGeometry
 from beadsight.data.rest import REST_FRAMES, average_rest
-from beadsight.evaluation.metrics import otsu_masks
 from beadsight.files import Closes
 from beadsight.geometry import (
     centre_of_pressure_mm,
@@ -94,6 +93,7 @@ from beadsight.geometry import (
 )
 from beadsight.inference.runtimes import Backend, TorchBackend
 from beadsight.inference.select import create_backend
+from beadsight.metrics import otsu_masks
 
 log = logging.getLogger(__name__)
 

@@ -361,3 +361,111 @@ def bench_source(
 def stats_json(stats: LiveStats, **extra: Any) -> dict[str, Any]:
     """A LiveStats as a JSON-safe dict (NaN -> None), with ``extra`` keys first."""
     return {**extra, **_json_safe(asdict(stats))}
+
+
+# --- the runtime tiers of issue 25: eager torch fp32, the best fp32 runtime, int8 ----------
+TIER_FRAMES = 300  # frames per throughput run of each tier
+
+
+def _tier_backends(model: PressureModel, cache_dir: Any, threads: int | None):
+    """(tier, build) pairs: eager torch fp32, the fastest fp32 runtime that agrees with
+    it (auto selection among the others), and int8 (built without its gate: the gate's
+    figures are reported instead)."""
+    from beadsight.inference.select import auto_candidates, build_backend, select_backend
+
+    others = [c for c in auto_candidates("fp32") if c[0] != "torch"]
+    cache = None if cache_dir in (None, "none") else cache_dir
+    if cache == "default":
+        from beadsight.inference.machine import default_cache_dir
+
+        cache = default_cache_dir()
+    return (
+        ("eager torch fp32", lambda: build_backend(model, "torch", "fp32", threads=threads)),
+        (
+            "best fp32",
+            lambda: select_backend(model, "fp32", None, cache, threads, candidates=others),
+        ),
+        ("int8", lambda: build_backend(model, "int8", "int8", cache_dir=cache, threads=threads)),
+    )
+
+
+def bench_tier(model: PressureModel, backend, frames: np.ndarray, count: int, presses) -> dict:
+    """One runtime: max throughput through the predictor and its metric parity."""
+    from beadsight.inference.metric_parity import metric_parity
+
+    parity = metric_parity(backend, model, presses)
+    predictor = PressurePredictor(model, backend, settings=PredictorSettings(on_gap="ignore"))
+    try:
+        stats = run_max_throughput(predictor, frames, count)
+    finally:
+        predictor.close()
+    return {
+        "backend": backend.describe(),
+        "readings_per_s": stats.hz,
+        "p50_ms": stats.p50_ms,
+        "p99_ms": stats.p99_ms,
+        "metric_parity_ok": parity.ok,
+        "metrics_meaningful": parity.meaningful,
+        "metric_deltas_pct": {k: 100 * v for k, v in parity.deltas.items()},
+        "metrics": parity.candidate,
+    }
+
+
+def bench_tiers(
+    models: dict[str, PressureModel],
+    frames: int = TIER_FRAMES,
+    cache_dir: Any = "default",
+    threads: int | None = None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """For each model: eager torch fp32, the best fp32 runtime and int8, one after another
+    on this CPU: readings/s, p50/p99 latency (ms), speedup over eager torch, and the
+    paper's metrics on held-out simulated presses with their change from fp32 torch."""
+    from beadsight.inference.machine import cpu_flags, cpu_name, cpu_summary
+    from beadsight.inference.metric_parity import simulated_presses
+
+    out: dict[str, Any] = {"cpu": cpu_summary(), "cpu_model": cpu_name(), "flags": cpu_flags()}
+    for name, model in models.items():
+        source, _ = simulated_frames(model.image_size, min(frames, DEFAULT_SOURCE_FRAMES), seed)
+        presses = simulated_presses(model)
+        rows = []
+        for tier, build in _tier_backends(model, cache_dir, threads):
+            backend = build()
+            rows.append({"tier": tier, **bench_tier(model, backend, source, frames, presses)})
+            log.info("bench tiers: %s %s: %s", name, tier, rows[-1])
+        eager = rows[0]["readings_per_s"]
+        for row in rows:
+            row["speedup_vs_eager"] = row["readings_per_s"] / eager if eager else None
+        out[name] = {
+            "model": {
+                "image_size": model.image_size,
+                "frames": model.frames,
+                "span": model.span,
+                "width": model.meta.model.width,
+                "checkpoint": model.source,
+            },
+            "tiers": rows,
+        }
+    return _json_safe(out)
+
+
+def tiers_summary(result: dict[str, Any]) -> str:
+    """The tiers as a plain-text table, the CPU first."""
+    lines = [result["cpu"]]
+    for name, entry in result.items():
+        if not isinstance(entry, dict) or "tiers" not in entry:
+            continue
+        m = entry["model"]
+        lines.append(f"{name}: {m['image_size']} px, width {m['width']}, {m['frames']} frames")
+        for row in entry["tiers"]:
+            deltas = ", ".join(
+                f"{k} {v:+.2f}%" if v is not None else f"{k} n/a"
+                for k, v in row["metric_deltas_pct"].items()
+            )
+            gate = "passes" if row["metric_parity_ok"] else "fails"
+            lines.append(
+                f"  {row['tier']:16s} {row['backend']:14s} {row['readings_per_s'] or 0:7.1f}/s "
+                f"p50 {row['p50_ms'] or 0:6.1f} ms p99 {row['p99_ms'] or 0:6.1f} ms "
+                f"x{row['speedup_vs_eager'] or 0:.2f}  metric gate {gate}: {deltas}"
+            )
+    return "\n".join(lines)

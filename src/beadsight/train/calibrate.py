@@ -37,6 +37,7 @@ from beadsight.checkpoint import (
 from beadsight.config import ConfigError, ContactThresholds
 from beadsight.data.dataset import DatasetError, open_dataset
 from beadsight.data.splits import dataset_window_ends
+from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.train.align import align_to_rest, fit_force_gain, with_meta
 from beadsight.train.calibrate_config import (
@@ -169,17 +170,22 @@ def check_data(config: CalibrateConfig, base: PressureModel, tc: TrainConfig) ->
         }
 
 
-def score(model: PressureModel | Path, config: CalibrateConfig, split: dict, **kwargs) -> dict:
-    """Metrics of ``model`` on the test presses (every frame with a full window)."""
+def score(
+    model: PressureModel | Path,
+    config: CalibrateConfig,
+    split: dict,
+    out_dir: Path | None = None,
+    **settings,
+) -> dict:
+    """Metrics of ``model`` on the test presses (every frame with a full window);
+    ``settings``: fields of :class:`~beadsight.evaluation.config.EvaluateConfig`."""
     return evaluate(
         model,
         config.data,
+        EvaluateConfig(resize=True, device=config.device, progress=config.progress, **settings),
+        out_dir,
         presses=split["test"],
         train_presses=split["train"],
-        resize=True,
-        device=config.device,
-        progress=config.progress,
-        **kwargs,
     )
 
 
@@ -249,16 +255,14 @@ def fine_tune_start(
     channel's noise is amplified by its small std). Noted in ``record``."""
     maes = {}
     for name, model in (("base", base), ("aligned", aligned)):
-        metrics = evaluate(
-            model,
-            config.data,
-            presses=split["val"],
+        settings = EvaluateConfig(
             resize=True,
             device=config.device,
             progress=False,
             plots=False,
             max_frames=VAL_MAX_WINDOWS,
         )
+        metrics = evaluate(model, config.data, settings, presses=split["val"])
         maes[name] = metrics["mae_kpa"]
     chosen = "aligned" if maes["aligned"] <= maes["base"] else "base"
     record.update(val_mae_kpa=maes, fine_tune_from=chosen)

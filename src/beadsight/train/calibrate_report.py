@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from beadsight.evaluation.evaluate import write_metrics_json
-from beadsight.evaluation.metrics import PAPER_METRICS
 from beadsight.evaluation.plots import (
     CurvePoint,
     learning_curve_caption,
@@ -25,6 +24,7 @@ from beadsight.evaluation.report import (
     evaluation_summary,
     write_report,
 )
+from beadsight.metrics import PAPER_METRICS
 from beadsight.train.calibrate_config import (
     ALIGNED_FILE,
     CURVE_PLOT,

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from beadsight.config import SensorGeometry
-from beadsight.evaluation.metrics import (
+from beadsight.geometry import disk_maps
+from beadsight.metrics import (
     MIN_SHAPE_FORCE_N,
     PAPER_METRICS,
     MetricsAccumulator,
@@ -21,7 +22,6 @@ from beadsight.evaluation.metrics import (
     otsu_thresholds,
     region_cells,
 )
-from beadsight.geometry import disk_maps
 
 G = SensorGeometry(image_size_px=64)
 MM_PER_PX = 41 / 64  # 0.640625
