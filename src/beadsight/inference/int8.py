@@ -14,9 +14,11 @@ selection both apply it; :func:`cached_metric_parity` keeps its result beside th
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
+import sys
 import tempfile
 from pathlib import Path
 
@@ -77,7 +79,8 @@ def quantize(onnx_path: Path, shape: tuple[int, ...], windows: np.ndarray, out: 
     ov_model = ov.Core().read_model(str(onnx_path))
     ov_model.reshape({ov_model.inputs[0]: list(shape)})
     data = nncf.Dataset(list(windows), lambda w: w[None])
-    quantized = nncf.quantize(ov_model, data, subset_size=len(windows))
+    with contextlib.redirect_stdout(sys.stderr):  # NNCF's progress bar: keep stdout clean
+        quantized = nncf.quantize(ov_model, data, subset_size=len(windows))
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=".beadsight-") as tmp:
         staged = Path(tmp) / "model.xml"
