@@ -191,11 +191,14 @@ def metric_parity(
     model: PressureModel,
     presses: SimulatedPresses | None = None,
     tolerance: float = METRIC_TOLERANCE,
+    reference: np.ndarray | None = None,
 ) -> MetricParity:
     """Score fp32 torch and ``backend`` on held-out presses (default
-    :func:`simulated_presses`); compare their paper metrics."""
+    :func:`simulated_presses`); compare their paper metrics. reference: fp32 torch's
+    (K, S, S) kPa maps of ``presses`` if already computed."""
     presses = presses if presses is not None else simulated_presses(model)
-    reference = model.predict(presses.inputs, batch_size=1)
+    if reference is None:
+        reference = model.predict(presses.inputs, batch_size=1)
     got = backend.run_batch(presses.inputs)
     return MetricParity(
         backend.describe(),

@@ -389,11 +389,14 @@ def _tier_backends(model: PressureModel, cache_dir: Any, threads: int | None):
     )
 
 
-def bench_tier(model: PressureModel, backend, frames: np.ndarray, count: int, presses) -> dict:
-    """One runtime: max throughput through the predictor and its metric parity."""
+def bench_tier(
+    model: PressureModel, backend, frames: np.ndarray, count: int, presses, reference
+) -> dict:
+    """One runtime: max throughput through the predictor and its metric parity
+    (``reference``: fp32 torch's maps of ``presses``)."""
     from beadsight.inference.metric_parity import metric_parity
 
-    parity = metric_parity(backend, model, presses)
+    parity = metric_parity(backend, model, presses, reference=reference)
     predictor = PressurePredictor(model, backend, settings=PredictorSettings(on_gap="ignore"))
     try:
         stats = run_max_throughput(predictor, frames, count)
@@ -428,10 +431,12 @@ def bench_tiers(
     for name, model in models.items():
         source, _ = simulated_frames(model.image_size, min(frames, DEFAULT_SOURCE_FRAMES), seed)
         presses = simulated_presses(model)
+        reference = model.predict(presses.inputs, batch_size=1)
         rows = []
         for tier, build in _tier_backends(model, cache_dir, threads):
             backend = build()
-            rows.append({"tier": tier, **bench_tier(model, backend, source, frames, presses)})
+            row = bench_tier(model, backend, source, frames, presses, reference)
+            rows.append({"tier": tier, **row})
             log.info("bench tiers: %s %s: %s", name, tier, rows[-1])
         eager = rows[0]["readings_per_s"]
         for row in rows:
