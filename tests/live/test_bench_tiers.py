@@ -24,9 +24,12 @@ def test_tiers_report_rate_latency_speedup_and_metric_deltas(tmp_path):
     for row in rows:
         assert row["readings_per_s"] > 0 and 0 < row["p50_ms"] <= row["p99_ms"]
         assert set(row["metric_deltas_pct"]) >= {"mae_kpa", "force_error_pct", "iou"}
-    assert rows[0]["metric_parity_ok"] and max(map(abs, rows[0]["metric_deltas_pct"].values())) == 0
+    assert (
+        rows[0]["metric_parity_ok"] and max(map(abs, rows[0]["metric_deltas_pct"].values())) < 1e-3
+    )
     assert rows[1]["metric_parity_ok"]
-    # measured: NNCF's default quantization moves this model's MAE far past 2 %
-    assert not rows[2]["metric_parity_ok"] and abs(rows[2]["metric_deltas_pct"]["mae_kpa"]) > 2
+    # the default int8 recipe keeps every paper metric within 2 % on this model
+    assert rows[2]["metric_parity_ok"] and max(map(abs, rows[2]["metric_deltas_pct"].values())) <= 2
+    assert max(map(abs, rows[2]["metric_deltas_pct"].values())) > 0  # it is not fp32
     text = tiers_summary(result)
-    assert "int8/int8" in text and "metric gate fails" in text and result["cpu"] in text
+    assert "int8/int8" in text and "metric gate passes" in text and result["cpu"] in text
