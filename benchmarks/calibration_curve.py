@@ -34,8 +34,8 @@ import numpy as np
 
 from beadsight.checkpoint import load_checkpoint
 from beadsight.evaluation.evaluate import evaluate
-from beadsight.metrics import PAPER_METRICS
 from beadsight.inference.machine import cpu_summary
+from beadsight.metrics import PAPER_METRICS
 from beadsight.sim.dataset import simulate_dataset
 from beadsight.train.calibrate import base_checkpoint, calibrate
 from beadsight.train.calibrate_config import CALIBRATION_SPLIT, CalibrateConfig
