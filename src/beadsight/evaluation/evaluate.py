@@ -1,6 +1,8 @@
 """Evaluate a checkpoint on a dataset: the paper's metrics, predictions, plots.
 
-:func:`evaluate` runs the model over every frame of the chosen split that ends a
+:func:`evaluate` runs the model (on the runtime ``EvaluateConfig.backend`` names, torch by
+default: the runtimes of live sensing, so exported and int8 models are scored alike) over
+every frame of the chosen split that ends a
 full window of valid, continuous history (the same frames training samples, via
 :func:`beadsight.data.splits.dataset_window_ends`; a window may reach into the
 previous press). A rest-referenced model scores only frames with a rest image before

@@ -140,10 +140,16 @@ def quantize(
     ov_model = ov.Core().read_model(str(onnx_path))
     ov_model.reshape({ov_model.inputs[0]: list(shape)})
     data = nncf.Dataset(list(windows), lambda w: w[None])
-    with contextlib.redirect_stdout(sys.stderr):  # NNCF's progress bar: keep stdout clean
-        quantized = nncf.quantize(
-            ov_model, data, subset_size=len(windows), **recipe.nncf_options(nncf)
-        )
+    nncf_log = logging.getLogger("nncf")  # its handler writes INFO lines to stdout
+    level = nncf_log.level
+    nncf_log.setLevel(logging.WARNING)
+    try:
+        with contextlib.redirect_stdout(sys.stderr):  # its progress bar: keep stdout clean
+            quantized = nncf.quantize(
+                ov_model, data, subset_size=len(windows), **recipe.nncf_options(nncf)
+            )
+    finally:
+        nncf_log.setLevel(level)
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=".beadsight-") as tmp:
         staged = Path(tmp) / "model.xml"

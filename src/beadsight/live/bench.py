@@ -31,7 +31,8 @@ import torch
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.data.rest import REST_FRAMES, average_rest, with_rest
+from beadsight.data.rest import REST_FRAMES, average_rest
+from beadsight.data.windows import stream_windows
 from beadsight.errors import ConfigError
 from beadsight.geometry import disk_pressure_kpa
 from beadsight.inference.parity import check_parity, probe_windows
@@ -209,12 +210,12 @@ def max_error_pct(predictor: PressurePredictor, frames: np.ndarray) -> float:
     """Largest error vs fp32 torch, % of max(peak, floor): probes + a few stream windows."""
     model = predictor.model
     t = model.span
-    starts = np.linspace(0, max(len(frames) - t, 0), ERROR_SAMPLE_WINDOWS).astype(int)
-    stream = [frames[s : s + t] for s in starts if len(frames[s : s + t]) == t]
-    if model.rest:  # against the rest image the predictor took: its first frames
-        rest = average_rest(frames[:REST_FRAMES])
-        stream = [with_rest(rest, window) for window in stream]
-    windows = np.concatenate([probe_windows(model), np.stack(stream)]) if stream else None
+    if len(frames) < t:
+        return float(check_parity(predictor.backend, model).max_abs_err_pct)
+    ends = np.unique(np.linspace(t - 1, len(frames) - 1, ERROR_SAMPLE_WINDOWS).astype(int))
+    # against the rest image the predictor took: its first frames
+    rest = average_rest(frames[:REST_FRAMES]) if model.rest else None
+    windows = np.concatenate([probe_windows(model), stream_windows(frames, ends, t, rest)])
     return float(check_parity(predictor.backend, model, windows).max_abs_err_pct)
 
 
