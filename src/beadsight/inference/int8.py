@@ -42,6 +42,7 @@ from beadsight.inference.config import INT8
 from beadsight.inference.exported import model_fingerprint
 from beadsight.inference.machine import machine_key
 from beadsight.inference.metric_parity import (
+    GATE_KEY,
     MetricParity,
     metric_parity,
     simulated_presses,
@@ -53,6 +54,7 @@ log = logging.getLogger(__name__)
 CALIBRATION_SEED = 4242  # simulator seed of the calibration presses (not the gate's)
 CALIBRATION_PRESSES = 3
 CALIBRATION_WINDOWS_PER_PRESS = 10  # 30 windows: NNCF's statistics need a few dozen
+CALIBRATION_CONTACT_SHARE = 0.75  # most calibration windows in contact: the peaks' range
 CALIBRATION_VERSION = "sim-presses-v1"  # change when the calibration windows change
 
 
@@ -101,7 +103,11 @@ NNCF_DEFAULT = QuantizationRecipe("performance", "mean_minmax", ())  # fails it 
 def calibration_windows(model: PressureModel) -> np.ndarray:
     """(K, inputs, S, S, 3) uint8 RGB windows of simulated presses (most in contact)."""
     presses = simulated_presses(
-        model, CALIBRATION_PRESSES, CALIBRATION_SEED, CALIBRATION_WINDOWS_PER_PRESS
+        model,
+        CALIBRATION_PRESSES,
+        CALIBRATION_SEED,
+        CALIBRATION_WINDOWS_PER_PRESS,
+        CALIBRATION_CONTACT_SHARE,
     )
     return presses.inputs
 
@@ -214,11 +220,11 @@ class Int8Backend(OpenVinoBackend):
 
 
 def cached_metric_parity(backend: Int8Backend, model: PressureModel) -> MetricParity:
-    """:func:`metric_parity` of ``backend``, kept in ``cache_dir/int8/<key>-parity.json``
+    """:func:`metric_parity` of ``backend``, kept in ``cache_dir/int8/<key>-parity-<gate>.json``
     (the held-out presses are simulated and run through fp32 torch only once)."""
     path = None
     if backend.cache_dir is not None:
-        path = backend.cache_dir / "int8" / f"{backend.model_key}-parity.json"
+        path = backend.cache_dir / "int8" / f"{backend.model_key}-parity-{GATE_KEY}.json"
         try:
             data = json.loads(path.read_text())
             return MetricParity(
