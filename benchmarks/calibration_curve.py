@@ -35,6 +35,7 @@ import numpy as np
 from beadsight.calibrate.config import CALIBRATION_SPLIT, CalibrateConfig
 from beadsight.calibrate.run import base_checkpoint, calibrate
 from beadsight.checkpoint import load_checkpoint
+from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.inference.machine import cpu_summary
 from beadsight.report.paper import PAPER_METRICS
@@ -62,7 +63,8 @@ def parse() -> argparse.Namespace:
 
 
 def scored(model, data: Path, test: np.ndarray, device: str) -> dict:
-    m = evaluate(model, data, presses=test, resize=True, device=device, progress=False, plots=False)
+    settings = EvaluateConfig(device=device, resize=True, plots=False, progress=False)
+    m = evaluate(model, data, settings, presses=test)
     return {k: m[k] for k in (*METRICS, "frames", "coverage")}
 
 

@@ -25,6 +25,7 @@ import torch
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.dataset_writer import DatasetWriter
+from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.inference.machine import cpu_summary
 
@@ -83,16 +84,14 @@ def main() -> int:
         for n in args.frames:
             tracemalloc.start()
             start = time.perf_counter()
-            metrics = evaluate(
-                model,
-                data,
+            settings = EvaluateConfig(
                 split="all",
-                out_dir=Path(tmp) / f"eval{n}",
                 batch_size=args.batch_size,
                 device=args.device,
                 max_frames=n,
                 progress=False,
             )
+            metrics = evaluate(model, data, settings, Path(tmp) / f"eval{n}")
             seconds = time.perf_counter() - start
             _, peak = tracemalloc.get_traced_memory()
             tracemalloc.stop()

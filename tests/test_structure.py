@@ -42,6 +42,7 @@ ORDER = (
     "model",
     "preprocess",
     "lens",
+    "metrics",
     "geometry torch_device",
     "config h5safe safe_numpy",
     "files lazy",

@@ -28,6 +28,7 @@ from beadsight.data.rest import (
     with_rest,
 )
 from beadsight.data.splits import dataset_window_ends
+from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.geometry import total_force_n
 
@@ -80,7 +81,9 @@ def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     # model.pt is a normal checkpoint whose stored split evaluate reuses
     model = load_checkpoint(out / "model.pt")
     assert model.meta.provenance["source"] == "beadsight calibrate"
-    again = evaluate(out / "model.pt", data, split="test", progress=False, plots=False)
+    again = evaluate(
+        out / "model.pt", data, EvaluateConfig(split="test", progress=False, plots=False)
+    )
     assert again["split_source"] == "checkpoint" and again["frames"] == metrics["frames"]
     assert again["mae_kpa"] == pytest.approx(metrics["mae_kpa"], rel=1e-5)
     # a second calibration into the same folder needs --overwrite

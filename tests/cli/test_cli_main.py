@@ -138,7 +138,7 @@ def test_cli_defaults_are_the_config_dataclasses_defaults():
 
 
 def test_evaluate_predict_and_live_defaults_are_the_library_defaults():
-    from beadsight.evaluation.evaluate import evaluate
+    from beadsight.evaluation.config import EvaluateConfig
     from beadsight.evaluation.predict import predict_recording
     from beadsight.live.config import LiveRunConfig
     from beadsight.live.outputs.viewer.server import ViewerServer
@@ -148,9 +148,13 @@ def test_evaluate_predict_and_live_defaults_are_the_library_defaults():
         assert {n: getattr(args, n) for n in names} == {n: defaults[n].default for n in names}
 
     args = _parse("evaluate", "--checkpoint", "c", "--data", "d", "--out", "o")
-    assert_defaults(args, evaluate, "split", "batch_size", "device")
+    assert_defaults(
+        args, EvaluateConfig, "split", "batch_size", "device", "backend", "precision", "max_frames"
+    )
     args = _parse("predict", "--checkpoint", "c", "--input", "i", "--out", "o")
-    assert_defaults(args, predict_recording, "preprocess", "batch_size", "device")
+    assert_defaults(
+        args, predict_recording, "preprocess", "batch_size", "device", "backend", "precision"
+    )
     args = _parse("live")
     assert_defaults(args, ViewerServer, "host", "port", "max_fps", "max_kpa")
     config = LiveRunConfig()

@@ -20,8 +20,9 @@ from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
 from beadsight.data.dataset import open_dataset
 from beadsight.evaluation.breakdown import PRESS_COLUMNS, force_error_by_force
+from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import evaluate
-from beadsight.evaluation.metrics import compute_metrics
+from beadsight.metrics import compute_metrics
 from beadsight.report.force_plots import force_error_figure, force_scatter_figure
 from beadsight.report.plots import ERROR_CMAP, NO_DATA_COLOUR, region_error_figure
 from beadsight.report.training import TRAINING_LOG, read_training_curve, training_curve_figure
@@ -52,7 +53,7 @@ def evaluated(tmp_path_factory):
     run.log(event="val", step=15, val_loss=0.7, val_mae_kpa=1.5, train_loss=0.8)
     run.log(event="val", step=30, val_loss=0.45, val_mae_kpa=1.1, train_loss=0.4)
     out = root / "eval"
-    metrics = evaluate(checkpoint, data, split="all", out_dir=out, progress=False)
+    metrics = evaluate(checkpoint, data, EvaluateConfig(split="all", progress=False), out)
     return metrics, out, data
 
 
@@ -167,7 +168,9 @@ def test_no_learning_curve_without_a_log_of_two_points(tmp_path, tiny_model, mak
     checkpoint = tiny_model.save(tmp_path / "alone" / "model.pt")
     (tmp_path / "alone" / TRAINING_LOG).write_text('{"event": "val", "step": 5}\nnot json\n')
     data = make_dataset(presses=3)
-    metrics = evaluate(checkpoint, data, split="all", out_dir=tmp_path / "e", progress=False)
+    metrics = evaluate(
+        checkpoint, data, EvaluateConfig(split="all", progress=False), tmp_path / "e"
+    )
     assert "training_curve" not in metrics["files"]
     assert not (tmp_path / "e" / "training_curve.png").exists()
     assert {"force_scatter", "force_error", "presses"} <= set(metrics["files"])

@@ -21,6 +21,7 @@ from beadsight.config import ModelConfig
 from beadsight.data.dataset import open_dataset
 from beadsight.data.reference_file import export_reference
 from beadsight.data.rest import rest_ends
+from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import EvaluationError, evaluate
 from beadsight.model import UNet
 from beadsight.train.config import TrainConfig
@@ -34,7 +35,7 @@ def test_short_presses_are_evaluated_on_every_frame_with_history(make_dataset, t
     """Presses of 12 frames are shorter than the 15-frame window: windows reach into the
     previous press, so every valid frame after the first 14 is evaluated."""
     data = make_dataset(presses=10, frames_per_press=12)
-    metrics = evaluate(tiny_model, data, split="all", device="cpu", progress=False)
+    metrics = evaluate(tiny_model, data, EvaluateConfig(split="all", device="cpu", progress=False))
     with open_dataset(data) as ds:
         n = len(ds)
         assert ds.num_presses == 10 and ds.valid.all()
@@ -42,7 +43,9 @@ def test_short_presses_are_evaluated_on_every_frame_with_history(make_dataset, t
     assert metrics["valid_frames"] == n
     assert metrics["coverage"] == pytest.approx((n - SPAN + 1) / n)
     assert metrics["window_coverage"] == metrics["coverage"]  # no --max-frames sample
-    sampled = evaluate(tiny_model, data, split="all", device="cpu", progress=False, max_frames=20)
+    sampled = evaluate(
+        tiny_model, data, EvaluateConfig(split="all", device="cpu", progress=False, max_frames=20)
+    )
     assert sampled["frames"] == 20 and sampled["coverage"] == pytest.approx(20 / n)
     assert sampled["window_coverage"] == metrics["window_coverage"]
     assert metrics["presses"] >= 9  # the first press's frames lack 14 frames of history
@@ -97,7 +100,7 @@ def test_frames_without_a_rest_image_are_not_covered(rest_run, tmp_path, capsys)
 def test_a_test_split_window_may_reach_into_another_press(make_dataset, tiny_model):
     data = make_dataset(presses=6, frames_per_press=40)
     tiny_model.meta.training.update(split={"train": [0, 1, 2, 3], "val": [4], "test": [5]})
-    metrics = evaluate(tiny_model, data, split="test", device="cpu", progress=False)
+    metrics = evaluate(tiny_model, data, EvaluateConfig(split="test", device="cpu", progress=False))
     with open_dataset(data) as ds:
         press5 = np.flatnonzero(ds.press_id == 5)
     assert metrics["split_source"] == "checkpoint"
@@ -128,7 +131,7 @@ def test_dropped_frames_break_the_history(make_dataset, tiny_model, tmp_path):
         t = f["timestamp"][()]
         t[80:] += 1.0  # one second of frames lost before frame 80
         f["timestamp"][...] = t
-    metrics = evaluate(tiny_model, data, split="all", device="cpu", progress=False)
+    metrics = evaluate(tiny_model, data, EvaluateConfig(split="all", device="cpu", progress=False))
     assert metrics["frames"] == 160 - 2 * (SPAN - 1)
 
 
@@ -155,7 +158,7 @@ def test_reference_checkpoint_is_scored_on_its_own_test_frames(reference_setup, 
     ref_file, ckpt_path, ckpt = reference_setup
     model = load_checkpoint(ckpt_path)
     assert model.meta.training["test_indices"] == ckpt["test_indices"]
-    metrics = evaluate(model, ref_file, split="test", device="cpu", progress=False)
+    metrics = evaluate(model, ref_file, EvaluateConfig(split="test", device="cpu", progress=False))
     assert metrics["split_source"] == "reference checkpoint test_indices"
     assert metrics["frames"] == len(ckpt["test_indices"]) == metrics["valid_frames"]
     assert metrics["presses"] == 2 and metrics["coverage"] == 1.0
@@ -195,14 +198,18 @@ def test_reference_split_is_refused_on_another_dataset(reference_setup, make_dat
         match=r"--split test refused .* are frames of "
         r"/home/someone/data/hours_1_to_2\.hdf5, not of some_other_hour",
     ):
-        evaluate(model, renamed, split="test", device="cpu", progress=False)
+        evaluate(model, renamed, EvaluateConfig(split="test", device="cpu", progress=False))
     short = make_dataset(presses=2, frames_per_press=40, name="other/hours_1_to_2.hdf5")
     with pytest.raises(EvaluationError, match=r"reach frame \d+, and .* has 80 frames"):
-        evaluate(model, short, split="test", device="cpu", progress=False)
+        evaluate(model, short, EvaluateConfig(split="test", device="cpu", progress=False))
     with pytest.raises(EvaluationError, match="stores no validation split"):
-        evaluate(model, ref_file, split="val", device="cpu", progress=False)
-    metrics = evaluate(model, ref_file, split="all", device="cpu", progress=False)
+        evaluate(model, ref_file, EvaluateConfig(split="val", device="cpu", progress=False))
+    metrics = evaluate(model, ref_file, EvaluateConfig(split="all", device="cpu", progress=False))
     assert metrics["split_source"] == "all"
     torch.save({k: v for k, v in ckpt.items() if k != "test_indices"}, tmp_path / "old.pt")
     with pytest.raises(EvaluationError, match="no usable train_indices/test_indices"):
-        evaluate(tmp_path / "old.pt", ref_file, split="test", device="cpu", progress=False)
+        evaluate(
+            tmp_path / "old.pt",
+            ref_file,
+            EvaluateConfig(split="test", device="cpu", progress=False),
+        )

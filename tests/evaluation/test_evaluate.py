@@ -20,6 +20,7 @@ from beadsight.data.labels import label_maps
 from beadsight.data.rest import REST_FRAMES, average_rest, rest_ends, with_rest
 from beadsight.data.splits import dataset_window_ends, split_presses, window_ends
 from beadsight.data.windows import resize_frames
+from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import EvaluationError, evaluate, select_split
 from beadsight.geometry import total_force_n
 from beadsight.report.animation import animation_frames, strongest_press
@@ -139,7 +140,9 @@ def test_evaluate_uses_checkpoint_split(make_dataset, tiny_model, caplog):
         split_seed=0,
     )
     with caplog.at_level(logging.WARNING, logger="beadsight.evaluation.evaluate"):
-        metrics = evaluate(tiny_model, data, split="test", device="cpu", progress=False)
+        metrics = evaluate(
+            tiny_model, data, EvaluateConfig(split="test", device="cpu", progress=False)
+        )
     assert not caplog.records
     assert metrics["split_source"] == "checkpoint" and metrics["presses"] == 1
     with open_dataset(data) as ds:
@@ -192,7 +195,7 @@ def test_split_recomputed_with_warning(make_dataset, tiny_model, caplog):
 def test_image_size_mismatch(make_dataset, model_file):
     data = make_dataset(image_size=32)
     with pytest.raises(EvaluationError, match="image_size") as err:
-        evaluate(model_file, data, split="all", device="cpu", progress=False)
+        evaluate(model_file, data, EvaluateConfig(split="all", device="cpu", progress=False))
     assert str(model_file) in str(err.value) and str(data) in str(err.value)
     assert "64" in str(err.value) and "32" in str(err.value)
 
@@ -202,7 +205,7 @@ def test_window_mismatch(make_dataset, model_file, tmp_path, capsys):
     # so a longer recording of short presses would do)
     data = make_dataset(presses=1, frames_per_press=10)
     with pytest.raises(EvaluationError, match="needs 15 consecutive valid frames") as err:
-        evaluate(model_file, data, split="all", device="cpu", progress=False)
+        evaluate(model_file, data, EvaluateConfig(split="all", device="cpu", progress=False))
     assert str(model_file) in str(err.value) and str(data) in str(err.value)
     code = main(
         [
@@ -230,24 +233,24 @@ def test_dataset_without_presses(tmp_path, model_file):
         frames = np.full((n, 64, 64, 3), 100, np.uint8)
         w.append(frames, np.zeros(n), np.zeros((n, 2)), np.ones(n, bool), np.arange(n) / 30)
     with pytest.raises(DatasetError, match="no presses") as err:
-        evaluate(model_file, path, split="all", device="cpu", progress=False)
+        evaluate(model_file, path, EvaluateConfig(split="all", device="cpu", progress=False))
     assert str(path) in str(err.value)
 
 
 def test_empty_split(make_dataset, model_file):
     data = make_dataset(presses=2)  # 70/10/20 of 2 presses: no validation press
     with pytest.raises(EvaluationError, match="'val' split has no presses"):
-        evaluate(model_file, data, split="val", device="cpu", progress=False)
+        evaluate(model_file, data, EvaluateConfig(split="val", device="cpu", progress=False))
 
 
 def test_bad_arguments(make_dataset, model_file, tmp_path):
     data = make_dataset(presses=3, frames_per_press=30)
     with pytest.raises(EvaluationError, match="--max-frames"):
-        evaluate(model_file, data, max_frames=0, progress=False)
+        evaluate(model_file, data, EvaluateConfig(max_frames=0, progress=False))
     with pytest.raises(EvaluationError, match="--batch-size"):
-        evaluate(model_file, data, batch_size=0, progress=False)
+        evaluate(model_file, data, EvaluateConfig(batch_size=0, progress=False))
     with pytest.raises(DatasetError, match="not found"):
-        evaluate(model_file, tmp_path / "missing.h5", progress=False)
+        evaluate(model_file, tmp_path / "missing.h5", EvaluateConfig(progress=False))
 
 
 def test_resize_to_checkpoint_size(make_dataset, tmp_path):
@@ -263,18 +266,15 @@ def test_resize_to_checkpoint_size(make_dataset, tmp_path):
     model = PressureModel.create(meta)
     data = make_dataset(presses=3, frames_per_press=30)
     with pytest.raises(EvaluationError, match="--resize"):
-        evaluate(model, data, split="all", device="cpu", progress=False)
+        evaluate(model, data, EvaluateConfig(split="all", device="cpu", progress=False))
     out = tmp_path / "e"
     metrics = evaluate(
         model,
         data,
-        split="all",
-        out_dir=out,
-        device="cpu",
-        resize=True,
-        max_frames=20,
-        plots=False,
-        progress=False,
+        EvaluateConfig(
+            split="all", device="cpu", resize=True, max_frames=20, plots=False, progress=False
+        ),
+        out,
     )
     assert metrics["image_size"] == 32 and metrics["frames"] == 20
     with open_dataset(data) as ds, h5py.File(out / "predictions.h5", "r") as f:
@@ -291,8 +291,8 @@ def test_resize_to_checkpoint_size(make_dataset, tmp_path):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_evaluate_on_cuda_matches_cpu(make_dataset, tiny_model):
     data = make_dataset(presses=3, frames_per_press=30)
-    on_cpu = evaluate(tiny_model, data, split="all", device="cpu", progress=False)
-    on_gpu = evaluate(tiny_model, data, split="all", device="cuda", progress=False)
+    on_cpu = evaluate(tiny_model, data, EvaluateConfig(split="all", device="cpu", progress=False))
+    on_gpu = evaluate(tiny_model, data, EvaluateConfig(split="all", device="cuda", progress=False))
     assert on_gpu["device"].startswith("cuda")
     for key in ("mae_kpa", "force_error_pct", "cop_error_mm", "iou"):
         assert on_gpu[key] == pytest.approx(on_cpu[key], rel=1e-3, abs=1e-4), key
@@ -316,13 +316,10 @@ def test_a_rest_model_is_scored_on_inputs_with_their_rest_images(rest_run, tmp_p
     metrics = evaluate(
         checkpoint,
         data,
-        split="all",
-        out_dir=out,
-        device="cpu",
-        plots=False,
-        report=False,
-        baselines=True,
-        progress=False,
+        EvaluateConfig(
+            split="all", device="cpu", plots=False, report=False, baselines=True, progress=False
+        ),
+        out,
     )
     assert metrics["model_config"]["rest_input"] is True
     with open_dataset(data) as ds, h5py.File(out / "predictions.h5", "r") as f:
@@ -343,7 +340,7 @@ def test_a_rest_model_is_scored_on_inputs_with_their_rest_images(rest_run, tmp_p
     assert metrics["coverage"] == metrics["window_coverage"] == pytest.approx(covered)
     assert covered < (240 - 2) / 240  # windows without a rest image are not covered
     # the test split is the checkpoint's, its frames those with a rest image
-    test = evaluate(checkpoint, data, device="cpu", plots=False, progress=False)
+    test = evaluate(checkpoint, data, EvaluateConfig(device="cpu", plots=False, progress=False))
     assert test["split_source"] == "checkpoint" and test["frames"] == test_frames.size
     assert 0 < test["coverage"] < 1
 
@@ -357,13 +354,10 @@ def test_old_checkpoint_figures_are_unchanged(make_dataset, tiny_model, tmp_path
     metrics = evaluate(
         tiny_model,
         data,
-        split="all",
-        out_dir=out,
-        device="cpu",
-        plots=False,
-        report=False,
-        baselines=True,
-        progress=False,
+        EvaluateConfig(
+            split="all", device="cpu", plots=False, report=False, baselines=True, progress=False
+        ),
+        out,
     )
     recorded = {
         "mae_kpa": 4.75911453479191,

@@ -22,8 +22,8 @@ from beadsight.data.rest import (
     rest_ends,
     with_rest,
 )
-from beadsight.data.windows import WindowReader
-from beadsight.evaluation.predict import PredictionError, WindowBuffer, predict_recording
+from beadsight.data.windows import WindowBuffer, WindowReader
+from beadsight.evaluation.predict import PredictionError, predict_recording
 from beadsight.geometry import total_force_n
 
 FPS = 30.0

@@ -8,6 +8,7 @@ import pytest
 from PIL import Image
 
 from beadsight.cli import main
+from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import evaluate
 from beadsight.evaluation.predict import predict_recording
 from beadsight.files import WriteError
@@ -91,12 +92,8 @@ def test_evaluate_full_disk_after_the_predictions(make_dataset, tiny_model, full
         evaluate(
             tiny_model,
             data,
-            split="all",
-            out_dir=out,
-            device="cpu",
-            max_frames=3,
-            baselines=True,
-            progress=False,
+            EvaluateConfig(split="all", device="cpu", max_frames=3, baselines=True, progress=False),
+            out,
         )
     assert (out / "predictions.h5").is_file()  # 3 frames fit
     with h5py.File(out / "predictions.h5", "r") as f:

@@ -14,7 +14,8 @@ from beadsight.checkpoint import load_checkpoint
 from beadsight.data.rest import REST_FRAMES, average_rest, with_rest
 from beadsight.inference.parity import check_parity
 from beadsight.inference.predictor import PredictorSettings, PressurePredictor
-from beadsight.inference.runtimes import CudaGraphBackend, build_backend
+from beadsight.inference.runtimes import CudaGraphBackend
+from beadsight.inference.select import build_backend
 
 FPS = 30.0
 

@@ -15,10 +15,9 @@ from beadsight.inference.runtimes import (
     BackendUnavailableError,
     CudaGraphBackend,
     TorchBackend,
-    build_backend,
     openvino_supports_bf16,
 )
-from beadsight.inference.select import create_backend
+from beadsight.inference.select import build_backend, create_backend
 
 HAS_CUDA = torch.cuda.is_available()
 

@@ -8,8 +8,8 @@ import json
 import pytest
 
 from beadsight.inference.parity import PARITY_TOLERANCE, check_parity
-from beadsight.inference.runtimes import BackendUnavailableError, build_backend
-from beadsight.inference.select import CHOICE_FILE, create_backend, select_backend
+from beadsight.inference.runtimes import BackendUnavailableError
+from beadsight.inference.select import CHOICE_FILE, build_backend, create_backend, select_backend
 
 
 def test_auto_picks_a_backend_that_passes_parity(probe_model, tmp_path):

@@ -174,20 +174,22 @@ def timed_evaluate(
     **kwargs: Any,
 ) -> dict:
     """evaluate() of ``model`` on ``presses`` of ``config.data`` (at most ``frames``
-    frames, spread evenly), timed into the budget's evaluation estimate."""
+    frames, spread evenly), timed into the budget's evaluation estimate. ``out_dir``,
+    ``train_presses``, ``plots`` and ``report`` go to evaluate()."""
+    from beadsight.evaluation.config import EvaluateConfig
     from beadsight.evaluation.evaluate import evaluate
 
-    t0 = time.monotonic()
-    metrics = evaluate(
-        model,
-        config.data,
-        presses=presses,
-        resize=True,
+    settings = EvaluateConfig(
         device=config.device,
-        progress=config.progress,
         max_frames=frames,
         plots=kwargs.pop("plots", False),
-        **kwargs,
+        report=kwargs.pop("report", True),
+        resize=True,
+        progress=config.progress,
+    )
+    t0 = time.monotonic()
+    metrics = evaluate(
+        model, config.data, settings, kwargs.pop("out_dir", None), presses=presses, **kwargs
     )
     budget.observe_evaluation(int(metrics.get("frames") or frames), time.monotonic() - t0)
     return metrics

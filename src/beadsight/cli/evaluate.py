@@ -47,7 +47,26 @@ def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
         help="resize frames to the checkpoint's image size if it differs from the dataset's "
         "(for checkpoints trained with --image-size)",
     )
+    _runtime_arguments(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _runtime_arguments(p: argparse.ArgumentParser) -> None:
+    from beadsight.evaluation import config
+
+    p.add_argument(
+        "--backend",
+        default=config.DEFAULT_BACKEND,
+        choices=config.BACKEND_CHOICES,
+        help="the runtime that runs the model, as `live --backend` (exported and quantized "
+        "models are scored on the same metrics; default: %(default)s)",
+    )
+    p.add_argument(
+        "--precision",
+        default="auto",
+        choices=config.PRECISION_CHOICES,
+        help="runtime precision (auto: the backend's own)",
+    )
 
 
 def _predict_arguments(p: argparse.ArgumentParser) -> None:
@@ -73,6 +92,7 @@ def _predict_arguments(p: argparse.ArgumentParser) -> None:
         "average of a video's first frames",
     )
     _batch_and_device(p, config.PREDICT_BATCH_SIZE)
+    _runtime_arguments(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -90,29 +110,30 @@ def run_evaluate(args: argparse.Namespace) -> int:
     Run a checkpoint over a dataset split; write metrics.json, predictions.h5 and PNG
     plots to --out and print the metrics beside the paper's.
     """
+    from beadsight.evaluation.config import EvaluateConfig
     from beadsight.evaluation.evaluate import evaluate
     from beadsight.files import prepare_output_folder
     from beadsight.report.paper import format_metrics_table
 
     prepare_output_folder(args.out, args.overwrite)
-    metrics = evaluate(
-        args.checkpoint,
-        args.data,
+    config = EvaluateConfig(
         split=args.split,
-        out_dir=args.out,
-        batch_size=args.batch_size,
+        backend=args.backend,
+        precision=args.precision,
         device=args.device,
+        batch_size=args.batch_size,
         max_frames=args.max_frames,
         baselines=args.baselines,
         plots=not args.no_plots,
         resize=args.resize,
         progress=not args.no_progress,
     )
+    metrics = evaluate(args.checkpoint, args.data, config, args.out)
     presses = metrics["presses"]
     print(
         f"{metrics['split']} split ({metrics['split_source']}): {metrics['frames']} frames of "
-        f"{presses} press{'es' if presses != 1 else ''}, {metrics['checkpoint']} on "
-        f"{metrics['dataset']}"
+        f"{presses} press{'es' if presses != 1 else ''}, {metrics['checkpoint']} "
+        f"({metrics['backend']}) on {metrics['dataset']}"
     )
     rest = ", or a rest image before it" if metrics["model_config"].get("rest_input") else ""
     print(
@@ -143,6 +164,8 @@ def run_predict(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         rest=args.rest,
         overwrite=args.overwrite,
+        backend=args.backend,
+        precision=args.precision,
     )
     print(summarize_predictions(out))
     return 0

@@ -61,6 +61,13 @@ def _bench_arguments(bench: argparse.ArgumentParser) -> None:
         "--duration", type=float, default=10.0, help="with --source: seconds to run (default 10)"
     )
     live.add_argument("--fps", type=float, default=None, help="with --source: the rate to ask")
+    live.add_argument(
+        "--tiers",
+        action="store_true",
+        help="instead: eager torch fp32, the best fp32 runtime and int8, one after another, "
+        "for the reference size (random weights) and the shipped model (or --checkpoint): "
+        "readings/s, p50/p99, speedup and the paper's metrics vs fp32 torch, with the CPU",
+    )
     live.add_argument("--json", action="store_true", help="print one JSON object")
     live.set_defaults(func=_bench_live)
 
@@ -131,6 +138,8 @@ def _bench_live(args: argparse.Namespace) -> int:
                 "with --source, give --duration (and --fps) instead"
             )
         return _bench_source(args)
+    if args.tiers:
+        return _bench_tiers(args)
     model = load_checkpoint(args.checkpoint) if args.checkpoint else None
     options = given(frames=args.frames, rate_hz=args.rate, seed=args.seed)
     if options.get("rate_hz") == 0:
@@ -144,6 +153,21 @@ def _bench_live(args: argparse.Namespace) -> int:
         **options,
     )
     print(json.dumps(result.to_dict()) if args.json else result.summary())
+    return 0
+
+
+def _bench_tiers(args: argparse.Namespace) -> int:
+    from beadsight.assets import shipped_model_path
+    from beadsight.checkpoint import load_checkpoint
+    from beadsight.live.bench import TIER_FRAMES, bench_tiers, random_model, tiers_summary
+
+    shipped = load_checkpoint(args.checkpoint or shipped_model_path())
+    models = {"reference": random_model(seed=args.seed or 0), "shipped": shipped}
+    options = _backend_options(args)
+    result = bench_tiers(
+        models, args.frames or TIER_FRAMES, options["cache_dir"], options["threads"]
+    )
+    print(json.dumps(result) if args.json else tiers_summary(result))
     return 0
 
 

@@ -174,3 +174,54 @@ def pixel_stats(
     mean = total / count
     std = np.sqrt(np.maximum(total_sq / count - mean**2, 0.0))
     return mean.tolist(), np.maximum(std, 1e-3).tolist()
+
+
+# --- streams (a video, a live or simulated session): frames in order, no dataset -----
+class WindowBuffer:
+    """The last ``span - 1`` frames, so a stream of chunks becomes model windows.
+
+    push(frames (n, S, S, 3)) -> windows (m, span, S, S, 3) for the last m = n - k
+    frames of the chunk, where the first k frames of the whole stream (k < span)
+    lack a full window. Memory: span - 1 frames plus one chunk.
+    """
+
+    def __init__(self, span: int):
+        self.span = span
+        self.seen = 0
+        self._tail: np.ndarray | None = None
+
+    def push(self, frames: np.ndarray) -> tuple[np.ndarray, int]:
+        """Returns (windows, first): windows end at chunk frames ``first .. n-1``."""
+        t = self.span
+        full = frames if self._tail is None else np.concatenate([self._tail, frames])
+        n_prev = len(full) - len(frames)
+        first = min(max(t - 1 - self.seen, 0), len(frames))
+        self.seen += len(frames)
+        self._tail = full[max(len(full) - (t - 1), 0) :].copy() if t > 1 else full[:0].copy()
+        if first == len(frames):
+            return np.zeros((0, t, *frames.shape[1:]), frames.dtype), first
+        view = np.lib.stride_tricks.sliding_window_view(full, t, axis=0)  # (m, S, S, 3, T)
+        start = n_prev + first - (t - 1)
+        return np.moveaxis(view[start:], -1, 1), first
+
+
+def stream_windows(
+    frames: np.ndarray, ends: np.ndarray, span: int, rest: np.ndarray | None = None
+) -> np.ndarray:
+    """Model inputs ending at ``ends`` of a stream held in memory.
+
+    frames: (N, S, S, 3) uint8 RGB, in order; ends: (B,) indices, each >= span - 1;
+    rest: an (S, S, 3) uint8 RGB rest image put in front of every window.
+    returns: (B, inputs, S, S, 3) uint8 RGB (a copy), windows oldest first.
+    """
+    ends = np.asarray(ends, dtype=np.int64)
+    if ends.size and (ends.min() < span - 1 or ends.max() >= len(frames)):
+        raise IndexError(
+            f"windows of {span} frames need ends in {span - 1}..{len(frames) - 1}, "
+            f"got {int(ends.min())}..{int(ends.max())}"
+        )
+    view = np.lib.stride_tricks.sliding_window_view(frames, span, axis=0)  # (N-span+1,S,S,3,span)
+    windows = np.moveaxis(view[ends - (span - 1)], -1, 1)  # (B, span, S, S, 3)
+    if rest is None:
+        return np.ascontiguousarray(windows)
+    return np.concatenate([np.broadcast_to(rest, (len(ends), 1, *rest.shape)), windows], axis=1)

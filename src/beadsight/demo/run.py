@@ -101,6 +101,7 @@ def _evaluate_and_report(
     model: PressureModel, config: DemoConfig, sim_config: SimConfig, seed: int, extra: dict
 ) -> dict:
     """Simulate held-out presses, evaluate, animate, write the report; returns the summary."""
+    from beadsight.evaluation.config import EvaluateConfig
     from beadsight.evaluation.evaluate import evaluate
 
     out = Path(config.out)
@@ -112,11 +113,8 @@ def _evaluate_and_report(
     timings["simulate_heldout_s"] = time.perf_counter() - t0
     try:
         t0 = time.perf_counter()
-        metrics = evaluate(
-            model,
-            data,
+        settings = EvaluateConfig(
             split="all",
-            out_dir=out,
             batch_size=config.batch_size,
             device=config.device,
             max_frames=config.max_frames,
@@ -124,6 +122,7 @@ def _evaluate_and_report(
             progress=config.progress,
             report=False,
         )
+        metrics = evaluate(model, data, settings, out)
         timings["evaluate_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         press = strongest_press(data, model)

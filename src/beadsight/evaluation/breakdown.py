@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from beadsight.config import SensorGeometry
-from beadsight.evaluation.metrics import FrameMetrics, MetricsAccumulator
 from beadsight.files import atomic_write_text
+from beadsight.metrics import FrameMetrics, MetricsAccumulator
 from beadsight.report.force_plots import plot_force_error, plot_force_scatter
 from beadsight.report.training import TRAINING_LOG, write_training_curve
 

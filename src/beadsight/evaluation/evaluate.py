@@ -1,13 +1,15 @@
 """Evaluate a checkpoint on a dataset: the paper's metrics, predictions, plots.
 
-:func:`evaluate` runs the model over every frame of the chosen split that ends a
+:func:`evaluate` runs the model (on the runtime ``EvaluateConfig.backend`` names, torch by
+default: the runtimes of live sensing, so exported and int8 models are scored alike) over
+every frame of the chosen split that ends a
 full window of valid, continuous history (the same frames training samples, via
 :func:`beadsight.data.splits.dataset_window_ends`; a window may reach into the
 previous press). A rest-referenced model scores only frames with a rest image before
 them, and each input gets it by training's rule (:mod:`beadsight.data.rest`, read by
 :mod:`beadsight.data.windows`). It compares with the ground truth of
 :func:`beadsight.data.labels.label_maps`, and accumulates the metrics of
-:mod:`beadsight.evaluation.metrics` batch by batch. With ``out_dir`` it writes:
+:mod:`beadsight.metrics` batch by batch. With ``out_dir`` it writes:
 
 * ``metrics.json``: the metrics (strict JSON, no NaN), counts, split, names, and
   ``coverage`` (frames evaluated / valid frames of the split) and ``window_coverage``
@@ -42,7 +44,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from beadsight.checkpoint import PressureModel
@@ -51,10 +52,8 @@ from beadsight.data.dataset import Dataset, open_dataset
 from beadsight.data.labels import label_maps
 from beadsight.data.windows import WindowReader
 from beadsight.evaluation.breakdown import Breakdown, write_breakdown_files
-from beadsight.evaluation.config import DEFAULT_DEVICE, DEFAULT_SPLIT
-from beadsight.evaluation.config import EVALUATE_BATCH_SIZE as DEFAULT_BATCH_SIZE
-from beadsight.evaluation.metrics import FrameMetrics, MetricsAccumulator
-from beadsight.evaluation.predict import IncrementalH5, as_model
+from beadsight.evaluation.config import EvaluateConfig
+from beadsight.evaluation.predict import IncrementalH5, as_model, open_runtime
 from beadsight.evaluation.rest_images import REST_FROM_DATASET, REST_NONE
 from beadsight.evaluation.selection import (
     SPLIT_CHOICES,
@@ -68,6 +67,8 @@ from beadsight.evaluation.selection import (
     subsample,
 )
 from beadsight.files import atomic_write_json
+from beadsight.inference.backend import Backend
+from beadsight.metrics import FrameMetrics, MetricsAccumulator
 from beadsight.report.page import REPORT_FILE, evaluation_report, write_report
 from beadsight.report.paper import PAPER_METRICS
 from beadsight.report.plots import (
@@ -81,6 +82,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "SPLIT_CHOICES",
+    "EvaluateConfig",
     "EvaluationError",
     "SplitSelection",
     "evaluate",
@@ -217,81 +219,76 @@ def _collect(col: _Collected, ds: Dataset, batch: np.ndarray, pred, gt, fm: Fram
 def evaluate(
     checkpoint: PressureModel | str | Path,
     data: str | Path,
-    split: str = DEFAULT_SPLIT,
+    config: EvaluateConfig | None = None,
     out_dir: str | Path | None = None,
     *,
-    batch_size: int = DEFAULT_BATCH_SIZE,
-    device: str | torch.device = DEFAULT_DEVICE,
-    max_frames: int | None = None,
-    baselines: bool = False,
-    plots: bool = True,
-    resize: bool = False,
-    progress: bool = True,
-    report: bool = True,
     presses: np.ndarray | None = None,
     train_presses: np.ndarray | None = None,
 ) -> dict:
-    """Evaluate ``checkpoint`` on the ``split`` of dataset ``data``; returns the metrics dict.
+    """Evaluate ``checkpoint`` on dataset ``data`` as ``config`` says; returns the metrics dict.
 
-    The dict holds mae_kpa, force_error_pct, cop_error_mm, iou (0..1),
-    region_mae_kpa (4x4, None for empty cells), worst_region_mae_kpa, frames and
-    per-metric frame counts (see :meth:`beadsight.evaluation.metrics.MetricsAccumulator.result`),
-    plus split, split_source, presses, checkpoint, dataset, span, model_config, image_size,
-    device, paper, definitions and (``baselines=True``) ``baselines``: the same
-    metrics for an all-zero map ("zero") and the mean training label ("mean_gt").
-    ``max_frames`` evaluates that many frames spread evenly over the split.
-    ``resize`` allows a checkpoint trained at another image size (see
-    :func:`evaluation_geometry`). With ``out_dir`` the files of the module
-    docstring are written there (``report=False``: all but ``index.html``).
-    ``presses`` (dataset press ids) replaces ``split``: exactly those presses are scored
-    (``train_presses``: the training presses, for the mean-label baseline).
+    The model runs on the runtime ``config.backend`` (the runtimes of live sensing,
+    :func:`~beadsight.evaluation.predict.open_runtime`), so an exported or quantized
+    model is scored on the paper's metrics. The dict holds mae_kpa, force_error_pct,
+    cop_error_mm, iou (0..1), region_mae_kpa (4x4, None for empty cells),
+    worst_region_mae_kpa, frames and per-metric frame counts (see
+    :meth:`beadsight.metrics.MetricsAccumulator.result`), plus split, split_source,
+    presses, checkpoint, dataset, span, model_config, image_size, device, backend (what
+    ran, e.g. ``"onnx/fp32"``), config, paper, definitions and (``config.baselines``)
+    ``baselines``: the same metrics for an all-zero map ("zero") and the mean training
+    label ("mean_gt"). With ``out_dir`` the files of the module docstring are written
+    there. ``presses`` (dataset press ids) replaces ``config.split``: exactly those
+    presses are scored (``train_presses``: the training presses, for the mean-label
+    baseline).
     """
-    if batch_size < 1:
-        raise EvaluationError(f"--batch-size must be >= 1, got {batch_size}")
-    if max_frames is not None and max_frames < 1:
-        raise EvaluationError(f"--max-frames must be >= 1, got {max_frames}")
-    model = as_model(checkpoint, device)
+    config = config if config is not None else EvaluateConfig()
+    model = as_model(checkpoint, config.device)
     out = Path(out_dir) if out_dir is not None else None
-    with open_dataset(data) as ds:
+    with open_dataset(data) as ds, open_runtime(model, config.backend, config.precision) as rt:
         ds.require_presses()
-        run = _Run(model, ds, evaluation_geometry(model, ds, resize), batch_size)
+        run = _Run(model, ds, evaluation_geometry(model, ds, config.resize), config, rt)
         if presses is None:
-            selection = select_split(model, ds, split)
+            selection = select_split(model, ds, config.split)
         else:
             selection = given_presses(ds, presses, train_presses)
-        ends = evaluation_frames(model, ds, selection, max_frames)
+        ends = evaluation_frames(model, ds, selection, config.max_frames)
         covered = coverage(ds, selection, model.span, ends.size, rest=bool(model.rest))
-        log.info(
-            "evaluating %s on %d frames of %d presses (%s split, %s) of %s: coverage %.1f%% "
-            "of the split's %d valid frames (%.1f%% have a full window%s)",
-            model.source,
-            ends.size,
-            np.unique(ds.press_id[ends]).size,
-            selection.name,
-            selection.source,
-            ds.path,
-            100 * covered["coverage"],
-            covered["valid_frames"],
-            100 * covered["window_coverage"],
-            f"; --max-frames {max_frames} took an even sample" if max_frames else "",
-        )
-        base_maps = run.baseline_maps(selection, ends) if baselines else {}
-        accs, col = run.loop(ends, base_maps, out, selection, progress)
-        metrics = _assemble(accs, model, ds, selection, ends, max_frames)
+        _log_start(model, ds, selection, ends, covered, config, rt)
+        base_maps = run.baseline_maps(selection, ends) if config.baselines else {}
+        accs, col = run.loop(ends, base_maps, out, selection)
+        metrics = _assemble(accs, model, ds, selection, ends, config, rt)
         metrics.update(col.breakdown.result())
         metrics.update(covered)
         if out is not None:
             metrics["files"] = {"metrics": METRICS_FILE, "predictions": PREDICTIONS_FILE}
-            if plots:
+            if config.plots:
                 metrics["files"].update(_write_plots(out, ds, run.geometry, col, metrics))
-            if report:
+            if config.report:
                 metrics["files"]["report"] = REPORT_FILE
     if out is not None:
         write_metrics_json(metrics, out / METRICS_FILE)
-        if report:
+        if config.report:
             write_report(evaluation_report(metrics, geometry=run.geometry), out)
         log.info("wrote %s", out)
     return metrics
+
+
+def _log_start(model, ds, selection, ends, covered, config: EvaluateConfig, rt: Backend) -> None:
+    log.info(
+        "evaluating %s (%s) on %d frames of %d presses (%s split, %s) of %s: coverage %.1f%% "
+        "of the split's %d valid frames (%.1f%% have a full window%s)",
+        model.source,
+        rt.describe(),
+        ends.size,
+        np.unique(ds.press_id[ends]).size,
+        selection.name,
+        selection.source,
+        ds.path,
+        100 * covered["coverage"],
+        covered["valid_frames"],
+        100 * covered["window_coverage"],
+        f"; --max-frames {config.max_frames} took an even sample" if config.max_frames else "",
+    )
 
 
 @dataclass
@@ -301,7 +298,8 @@ class _Run:
     model: PressureModel
     ds: Dataset
     geometry: SensorGeometry  # the dataset's, at the model's image size
-    batch_size: int
+    config: EvaluateConfig
+    runtime: Backend  # what runs the model
 
     def baseline_maps(self, selection: SplitSelection, ends: np.ndarray) -> dict[str, np.ndarray]:
         """The constant maps scored as baselines: all-zero and the mean training label."""
@@ -310,7 +308,7 @@ class _Run:
         source = train_ends if train_ends.size else ends
         return {
             "zero": np.zeros((s, s), np.float32),
-            "mean_gt": mean_gt_map(ds, source, self.geometry, self.batch_size),
+            "mean_gt": mean_gt_map(ds, source, self.geometry, self.config.batch_size),
         }
 
     def loop(
@@ -319,7 +317,6 @@ class _Run:
         base_maps: dict[str, np.ndarray],
         out: Path | None,
         selection: SplitSelection,
-        progress: bool,
     ) -> tuple[dict[str, MetricsAccumulator], _Collected]:
         """Predict, label and score ``ends`` batch by batch; append to predictions.h5."""
         ds, model = self.ds, self.model
@@ -335,11 +332,14 @@ class _Run:
                 writer = stack.enter_context(IncrementalH5(out / PREDICTIONS_FILE, specs))
                 writer.file.attrs.update(_prediction_attrs(model, ds, self.geometry, selection))
             bar = stack.enter_context(
-                tqdm(total=ends.size, unit="frame", desc="evaluate", disable=not progress)
+                tqdm(
+                    total=ends.size, unit="frame", desc="evaluate", disable=not self.config.progress
+                )
             )
-            for i in range(0, ends.size, self.batch_size):
-                batch = ends[i : i + self.batch_size]
-                pred = _predict(model, ds, reader(batch), batch, self.batch_size)
+            step = self.config.batch_size
+            for i in range(0, ends.size, step):
+                batch = ends[i : i + step]
+                pred = _predict(self.runtime, model, ds, reader(batch), batch, step)
                 gt = _labels(ds, batch, self.geometry)
                 position = ds.position_mm[batch]
                 fm = accs["model"].update(pred, gt, position)
@@ -361,9 +361,14 @@ class _Run:
 
 
 def _predict(
-    model: PressureModel, ds: Dataset, windows: np.ndarray, batch: np.ndarray, batch_size: int
+    runtime: Backend,
+    model: PressureModel,
+    ds: Dataset,
+    windows: np.ndarray,
+    batch: np.ndarray,
+    batch_size: int,
 ) -> np.ndarray:
-    pred = model.predict(windows, batch_size=batch_size)
+    pred = runtime.run_batch(windows, batch_size)
     finite = np.isfinite(pred).reshape(len(pred), -1).all(axis=1)
     if not finite.all():
         raise EvaluationError(
@@ -373,7 +378,7 @@ def _predict(
     return pred
 
 
-def _assemble(accs, model, ds, selection, ends, max_frames) -> dict:
+def _assemble(accs, model, ds, selection, ends, config: EvaluateConfig, rt: Backend) -> dict:
     metrics = accs["model"].result()
     metrics.update(
         split=selection.name,
@@ -385,7 +390,9 @@ def _assemble(accs, model, ds, selection, ends, max_frames) -> dict:
         model_config=model.meta.model.to_dict(),  # frames (T), frame_stride, ...
         image_size=model.image_size,
         device=str(model.device),
-        max_frames=max_frames,
+        backend=rt.describe(),
+        config=config.to_dict(),
+        max_frames=config.max_frames,
         paper=dict(PAPER_METRICS),
         definitions=DEFINITIONS,
     )

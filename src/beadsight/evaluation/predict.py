@@ -49,6 +49,7 @@ import json
 import logging
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -60,14 +61,22 @@ from tqdm import tqdm
 from beadsight import __version__
 from beadsight.checkpoint import PressureModel, load_checkpoint
 from beadsight.data.dataset import open_dataset
+from beadsight.data.windows import WindowBuffer
 from beadsight.errors import BeadSightError
-from beadsight.evaluation.config import DEFAULT_DEVICE, PREDICT_PREPROCESS
+from beadsight.evaluation.config import (
+    DEFAULT_BACKEND,
+    DEFAULT_DEVICE,
+    PREDICT_PREPROCESS,
+    check_runtime,
+)
 from beadsight.evaluation.config import PREDICT_BATCH_SIZE as DEFAULT_BATCH_SIZE
 from beadsight.evaluation.h5writer import IncrementalH5
 from beadsight.evaluation.rest_images import REST_NONE, FileRest, StreamRest, stream_rest
 from beadsight.files import refuse_existing
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
+from beadsight.inference.backend import Backend
 from beadsight.inference.frames import check_preprocess, input_converter
+from beadsight.inference.select import create_backend
 from beadsight.preprocess import FrameSizeError
 from beadsight.torch_device import resolve_device
 
@@ -90,33 +99,21 @@ def as_model(checkpoint: PressureModel | str | Path, device: str | torch.device)
     return model.to(resolve_device(device, "--device"))
 
 
-# --- ring buffer --------------------------------------------------------------------
-class WindowBuffer:
-    """The last ``span - 1`` frames, so a stream of chunks becomes model windows.
-
-    push(frames (n, S, S, 3)) -> windows (m, span, S, S, 3) for the last m = n - k
-    frames of the chunk, where the first k frames of the whole stream (k < span)
-    lack a full window. Memory: span - 1 frames plus one chunk.
-    """
-
-    def __init__(self, span: int):
-        self.span = span
-        self.seen = 0
-        self._tail: np.ndarray | None = None
-
-    def push(self, frames: np.ndarray) -> tuple[np.ndarray, int]:
-        """Returns (windows, first): windows end at chunk frames ``first .. n-1``."""
-        t = self.span
-        full = frames if self._tail is None else np.concatenate([self._tail, frames])
-        n_prev = len(full) - len(frames)
-        first = min(max(t - 1 - self.seen, 0), len(frames))
-        self.seen += len(frames)
-        self._tail = full[max(len(full) - (t - 1), 0) :].copy() if t > 1 else full[:0].copy()
-        if first == len(frames):
-            return np.zeros((0, t, *frames.shape[1:]), frames.dtype), first
-        view = np.lib.stride_tricks.sliding_window_view(full, t, axis=0)  # (m, S, S, 3, T)
-        start = n_prev + first - (t - 1)
-        return np.moveaxis(view[start:], -1, 1), first
+@contextmanager
+def open_runtime(
+    model: PressureModel, backend: str = DEFAULT_BACKEND, precision: str = "auto"
+) -> Iterator[Backend]:
+    """The runtime of live sensing (:func:`beadsight.inference.select.create_backend`)
+    that runs ``model`` offline, closed on exit. ``backend``: "torch" (on the model's
+    device), "onnx", "openvino", "int8", ... or "auto". It is built without a parity
+    check: evaluating it is the check (``metrics.json`` names it)."""
+    check_runtime(backend, precision)
+    device = model.device if backend == "torch" or model.device.type == "cuda" else None
+    runtime = create_backend(model, backend, precision, device=device, check=False)
+    try:
+        yield runtime
+    finally:
+        runtime.close()
 
 
 # --- frame sources ------------------------------------------------------------------
@@ -275,6 +272,8 @@ def predict_recording(
     progress: bool = True,
     rest: str | Path | None = None,
     overwrite: bool = False,
+    backend: str = DEFAULT_BACKEND,
+    precision: str = "auto",
 ) -> Path:
     """Predict a pressure map for every frame of a dataset or video; write ``out`` (HDF5).
 
@@ -289,6 +288,7 @@ def predict_recording(
     (:func:`~beadsight.data.rest.load_rest_file`); without it
     the rest image comes from the input (``rest_source`` in this module's docstring).
     An existing ``out`` is refused unless ``overwrite``.
+    backend, precision: the runtime (:func:`open_runtime`; attribute ``backend``).
     Returns the output path; the layout is in this module's docstring.
     """
     if batch_size < 1:
@@ -300,6 +300,7 @@ def predict_recording(
         raise PredictionError(f"{out}: the output would overwrite the input")
     refuse_existing(out, overwrite)
     model = as_model(checkpoint, device)
+    check_runtime(backend, precision)
     source = _open_source(input, model, preprocess)
     s, t = model.image_size, model.span
     valid = 0
@@ -311,14 +312,18 @@ def predict_recording(
             )
         ds = source.ds if isinstance(source, _DatasetSource) else None
         rests = stream_rest(model, ds, rest) if model.rest else None
-        with IncrementalH5(out, _output_specs(s)) as writer:
+        with (
+            open_runtime(model, backend, precision) as runtime,
+            IncrementalH5(out, _output_specs(s)) as writer,
+        ):
             writer.file.attrs.update(_attrs(model, input, source, rests))
+            writer.file.attrs["backend"] = runtime.describe()
             ring = WindowBuffer(t)
             with tqdm(
                 total=source.total, unit="frame", desc="predict", disable=not progress
             ) as bar:
                 for chunk in source.chunks(max(batch_size, READ_CHUNK_FRAMES)):
-                    valid += _predict_chunk(model, ring, rests, chunk, writer, batch_size)
+                    valid += _predict_chunk(runtime, model, ring, rests, chunk, writer, batch_size)
                     bar.update(len(chunk.frames))
             if writer.rows < t:
                 log.warning(
@@ -336,6 +341,7 @@ def predict_recording(
 
 
 def _predict_chunk(
+    runtime: Backend,
     model: PressureModel,
     ring: WindowBuffer,
     rests: StreamRest | None,
@@ -361,7 +367,7 @@ def _predict_chunk(
         inputs = np.concatenate([images[first:][keep][:, None], windows[keep]], axis=1)
     maps = np.zeros((n, s, s), np.float32)
     if len(inputs):
-        maps[valid] = model.predict(inputs, batch_size=batch_size)
+        maps[valid] = runtime.run_batch(np.ascontiguousarray(inputs), batch_size)
     writer.append(
         pressure_kpa=maps,
         timestamp_s=chunk.timestamp_s,

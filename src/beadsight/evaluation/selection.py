@@ -39,17 +39,12 @@ from beadsight.data.splits import (
     split_presses,
     valid_frames,
 )
-from beadsight.errors import BeadSightError
-from beadsight.evaluation.config import SPLIT_CHOICES
+from beadsight.evaluation.config import SPLIT_CHOICES, EvaluationError
 
 log = logging.getLogger(__name__)
 
 REFERENCE_SPLIT_SOURCE = "reference checkpoint test_indices"
 GIVEN_SPLIT, GIVEN_SOURCE = "held-out", "given"  # presses chosen by the caller
-
-
-class EvaluationError(BeadSightError):
-    """The checkpoint and the dataset cannot be evaluated together; the message says why."""
 
 
 @dataclass(frozen=True)

@@ -34,10 +34,14 @@ class Backend:
     """
 
     name = "base"
+    precisions: tuple[str, ...] = PRECISIONS  # the precisions this runtime can run
+    batched = False  # True: _run accepts (B, inputs, S, S, 3) for any B
 
     def __init__(self, model: PressureModel, precision: str = "fp32"):
-        if precision not in PRECISIONS:
-            raise ConfigError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+        if precision not in self.precisions:
+            raise ConfigError(
+                f"{self.name}: precision must be one of {self.precisions}, got {precision!r}"
+            )
         self.model = model
         self.precision = precision
         self.span = model.span
@@ -83,6 +87,23 @@ class Backend:
         first, then the window oldest first) -> (1, S, S) float32 kPa."""
         self._check(images)
         return self._run(np.ascontiguousarray(images))
+
+    def run_batch(self, images: np.ndarray, batch_size: int = 16) -> np.ndarray:
+        """images: (B, inputs, S, S, 3) uint8 RGB (each as :meth:`run` takes it) ->
+        (B, S, S) float32 kPa. Runtimes with a batch axis run ``batch_size`` inputs per
+        call; the others run them one by one. The offline path (evaluate, predict)."""
+        shape = getattr(images, "shape", None)
+        if shape is None or tuple(shape[1:]) != self._shape[1:] or images.dtype != np.uint8:
+            raise ValueError(
+                f"images: expected (B, {', '.join(map(str, self._shape[1:]))}) uint8 RGB, "
+                f"got {shape} {getattr(images, 'dtype', type(images))}"
+            )
+        out = np.empty((len(images), self.image_size, self.image_size), dtype=np.float32)
+        step = max(int(batch_size), 1) if self.batched else 1
+        for i in range(0, len(images), step):
+            chunk = np.ascontiguousarray(images[i : i + step])
+            out[i : i + step] = self._run(chunk) if step > 1 else self.run(chunk)
+        return out
 
     def run_incremental(
         self, window: np.ndarray, new_frames: int, rest: np.ndarray | None = None

@@ -29,9 +29,11 @@ cuda       PyTorch on a CUDA device with CUDA graphs (one graph per     fp32, bf
            ring-buffer position, so only the newest frame is copied in)
 =========  ===========================================================  ==========
 
-:func:`build_backend` constructs one by name, without checks; parity
-(:mod:`beadsight.inference.parity`) and the choice of a backend
-(:mod:`beadsight.inference.select`) build on it.
+The ``int8`` runtime (OpenVINO after NNCF quantization) is
+:mod:`beadsight.inference.int8`. :func:`beadsight.inference.select.build_backend`
+constructs any of them by name, without checks; parity
+(:mod:`beadsight.inference.parity`, :mod:`beadsight.inference.metric_parity`) and the
+choice of a backend (:mod:`beadsight.inference.select`) build on it.
 """
 
 from __future__ import annotations
@@ -47,7 +49,6 @@ import numpy as np
 import torch
 
 from beadsight.checkpoint import PressureModel
-from beadsight.errors import ConfigError
 from beadsight.files import atomic_write
 from beadsight.inference.backend import (
     BACKENDS,
@@ -72,7 +73,6 @@ __all__ = [  # the interface is re-exported: runtimes are used through it
     "OnnxBackend",
     "OpenVinoBackend",
     "TorchBackend",
-    "build_backend",
     "openvino_supports_bf16",
 ]
 
@@ -93,6 +93,7 @@ class TorchBackend(Backend):
     """
 
     name = "torch"
+    batched = True
 
     def __init__(
         self,
@@ -272,6 +273,7 @@ class OnnxBackend(_ModelFileBackend):
     """ONNX Runtime on the CPU (fp32)."""
 
     name = "onnx"
+    batched = True  # exported graphs have a dynamic batch axis
 
     def _check_available(self) -> None:
         if self.precision != "fp32":
@@ -479,29 +481,3 @@ class CudaGraphBackend(Backend):
         self._graphs.clear()
         self._outputs.clear()
         self._ring = None
-
-
-def build_backend(
-    model: PressureModel,
-    name: str,
-    precision: str = "fp32",
-    device: str | torch.device | None = None,
-    exported_model: str | Path | None = None,
-    cache_dir: Path | None = None,
-    threads: int | None = None,
-) -> Backend:
-    """Construct backend ``name`` without any parity check (see
-    :func:`beadsight.inference.select.create_backend`)."""
-    if name not in BACKENDS:
-        raise ConfigError(f"backend must be 'auto' or one of {BACKENDS}, got {name!r}")
-    if exported_model is not None and name not in ("onnx", "openvino"):
-        raise ConfigError(f"exported_model needs backend 'onnx' or 'openvino', not {name!r}")
-    if name == "torch":
-        return TorchBackend(model, precision, device=device, threads=threads)
-    if name == "compile":
-        return CompileBackend(model, precision, cache_dir=cache_dir, threads=threads)
-    if name == "onnx":
-        return OnnxBackend(model, precision, exported_model, cache_dir, threads)
-    if name == "openvino":
-        return OpenVinoBackend(model, precision, exported_model, cache_dir, threads)
-    return CudaGraphBackend(model, precision, device=device)

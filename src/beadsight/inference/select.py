@@ -13,6 +13,12 @@ decision is cached per checkpoint fingerprint and machine in
 ``cache_dir/backend-choice.json``; on a cache hit only the chosen backend is built
 (and parity-checked again). ``compile`` is not an auto candidate while OpenVINO or
 ONNX Runtime is installed (its first build takes minutes); name it explicitly.
+
+The ``int8`` runtime (:mod:`beadsight.inference.int8`) is judged on the paper's metrics
+instead (:mod:`beadsight.inference.metric_parity`: every metric within 2 % relative of
+fp32 torch on held-out simulated presses): named, it is refused with
+:class:`~beadsight.inference.metric_parity.MetricParityError` when it fails; auto
+selection tries it first (with OpenVINO and NNCF installed) and drops it when it fails.
 """
 
 from __future__ import annotations
@@ -30,12 +36,15 @@ import torch
 from beadsight.checkpoint import PressureModel
 from beadsight.errors import ConfigError
 from beadsight.files import atomic_write_json
+from beadsight.inference.config import INT8
 from beadsight.inference.export_format import (
     PRECISION_KEY,
     check_exported_matches,
     model_fingerprint,
 )
+from beadsight.inference.int8 import Int8Backend, cached_metric_parity
 from beadsight.inference.machine import default_cache_dir, importable, machine_key
+from beadsight.inference.metric_parity import require_metric_parity
 from beadsight.inference.parity import (
     PARITY_TOLERANCE,
     check_parity,
@@ -44,14 +53,20 @@ from beadsight.inference.parity import (
     require_parity,
 )
 from beadsight.inference.runtimes import (
+    BACKENDS,
     PRECISIONS,
     Backend,
     BackendUnavailableError,
-    build_backend,
+    CompileBackend,
+    CudaGraphBackend,
+    OnnxBackend,
+    OpenVinoBackend,
+    TorchBackend,
 )
 
 log = logging.getLogger(__name__)
 
+INT8_CANDIDATE = ("int8", INT8)  # tried first on CPUs where openvino and nncf import
 CPU_AUTO_ORDER = (("openvino", "bf16"), ("openvino", "fp32"), ("onnx", "fp32"), ("torch", "fp32"))
 CPU_FALLBACK_ORDER = (("compile", "fp32"), ("torch", "fp32"))  # without OpenVINO/ONNX Runtime
 CUDA_AUTO_ORDER = (("cuda", "bf16"), ("cuda", "fp32"))
@@ -73,8 +88,10 @@ class Candidate:
 
 
 def _check_precision(precision: str) -> None:
-    if precision not in ("auto", *PRECISIONS):
-        raise ConfigError(f"precision must be 'auto' or one of {PRECISIONS}, got {precision!r}")
+    if precision not in ("auto", *PRECISIONS, INT8):
+        raise ConfigError(
+            f"precision must be 'auto' or one of {(*PRECISIONS, INT8)}, got {precision!r}"
+        )
 
 
 def _wants_cuda(device: str | torch.device | None) -> bool:
@@ -90,6 +107,8 @@ def auto_candidates(precision: str = "auto", device: Any = None) -> list[tuple[s
     else:
         have_fast = any(importable(m) for m in ("openvino", "onnxruntime"))
         order = list(CPU_AUTO_ORDER if have_fast else CPU_FALLBACK_ORDER)
+        if importable("openvino") and importable("nncf"):
+            order.insert(0, INT8_CANDIDATE)
     if precision != "auto":
         order = [c for c in order if c[1] == precision]
     return order
@@ -105,6 +124,34 @@ def time_backend(backend: Backend, window: np.ndarray, runs: int = AUTO_TIMED_RU
         backend.run(window)
         times.append(time.perf_counter() - start)
     return float(np.median(times))
+
+
+def build_backend(
+    model: PressureModel,
+    name: str,
+    precision: str = "fp32",
+    device: str | torch.device | None = None,
+    exported_model: str | Path | None = None,
+    cache_dir: Path | None = None,
+    threads: int | None = None,
+) -> Backend:
+    """Construct backend ``name`` without any parity check (see
+    :func:`beadsight.inference.select.create_backend`)."""
+    if name not in BACKENDS:
+        raise ConfigError(f"backend must be 'auto' or one of {BACKENDS}, got {name!r}")
+    if exported_model is not None and name not in ("onnx", "openvino"):
+        raise ConfigError(f"exported_model needs backend 'onnx' or 'openvino', not {name!r}")
+    if name == "int8":
+        return Int8Backend(model, INT8, cache_dir=cache_dir, threads=threads)
+    if name == "torch":
+        return TorchBackend(model, precision, device=device, threads=threads)
+    if name == "compile":
+        return CompileBackend(model, precision, cache_dir=cache_dir, threads=threads)
+    if name == "onnx":
+        return OnnxBackend(model, precision, exported_model, cache_dir, threads)
+    if name == "openvino":
+        return OpenVinoBackend(model, precision, exported_model, cache_dir, threads)
+    return CudaGraphBackend(model, precision, device=device)
 
 
 # --- the choice cache ---------------------------------------------------------------
@@ -153,6 +200,14 @@ def _try_candidate(model, name, precision, device, cache_dir, threads, probe: _P
     except (BackendUnavailableError, ImportError, RuntimeError) as e:
         log.debug("auto: %s/%s unavailable: %s", name, precision, e)
         return f"unavailable ({e})"
+    if name == "int8":  # judged on the paper's metrics, not pixel by pixel
+        parity = cached_metric_parity(backend, model)
+        if not parity.ok:
+            backend.close()
+            log.info("auto: %s rejected: %s", backend.describe(), parity)
+            return f"rejected, {parity}"
+        backend.parity = parity
+        return backend
     tolerance = PARITY_TOLERANCE
     if precision != "fp32":  # probes cannot cover every input: demand a margin
         tolerance = replace(tolerance, fraction=tolerance.fraction * AUTO_REDUCED_PRECISION_MARGIN)
@@ -196,7 +251,8 @@ def _fastest(model, todo, device, cache_dir, threads, probe) -> tuple[Backend | 
             continue
         seconds = time_backend(backend, probe.timing_window)
         parity = backend.parity
-        tried.append(Candidate(name, prec, seconds, str(parity), parity.max_abs_err_pct))
+        err = getattr(parity, "max_abs_err_pct", None)  # None: judged on metrics (int8)
+        tried.append(Candidate(name, prec, seconds, str(parity), err))
         log.info("auto: %s %.1f ms", backend.describe(), seconds * 1e3)
         if seconds < best_time:
             if best is not None:
@@ -276,9 +332,11 @@ def create_backend(
     if backend == "auto":
         return select_backend(model, precision, device, cache, threads)
     _check_precision(precision)
-    prec = "fp32" if precision == "auto" else precision
+    prec = ("fp32" if backend != "int8" else INT8) if precision == "auto" else precision
     result = build_backend(model, backend, prec, device, None, cache, threads)
-    if check and not (backend == "torch" and prec == "fp32"):
+    if check and backend == "int8":
+        require_metric_parity(result, model, cached_metric_parity(result, model))
+    elif check and not (backend == "torch" and prec == "fp32"):
         require_parity(result, model)
     return result
 

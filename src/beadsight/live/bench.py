@@ -31,7 +31,8 @@ import torch
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig, SensorGeometry
-from beadsight.data.rest import REST_FRAMES, average_rest, with_rest
+from beadsight.data.rest import REST_FRAMES, average_rest
+from beadsight.data.windows import stream_windows
 from beadsight.errors import ConfigError
 from beadsight.geometry import disk_pressure_kpa
 from beadsight.inference.parity import check_parity, probe_windows
@@ -209,12 +210,12 @@ def max_error_pct(predictor: PressurePredictor, frames: np.ndarray) -> float:
     """Largest error vs fp32 torch, % of max(peak, floor): probes + a few stream windows."""
     model = predictor.model
     t = model.span
-    starts = np.linspace(0, max(len(frames) - t, 0), ERROR_SAMPLE_WINDOWS).astype(int)
-    stream = [frames[s : s + t] for s in starts if len(frames[s : s + t]) == t]
-    if model.rest:  # against the rest image the predictor took: its first frames
-        rest = average_rest(frames[:REST_FRAMES])
-        stream = [with_rest(rest, window) for window in stream]
-    windows = np.concatenate([probe_windows(model), np.stack(stream)]) if stream else None
+    if len(frames) < t:
+        return float(check_parity(predictor.backend, model).max_abs_err_pct)
+    ends = np.unique(np.linspace(t - 1, len(frames) - 1, ERROR_SAMPLE_WINDOWS).astype(int))
+    # against the rest image the predictor took: its first frames
+    rest = average_rest(frames[:REST_FRAMES]) if model.rest else None
+    windows = np.concatenate([probe_windows(model), stream_windows(frames, ends, t, rest)])
     return float(check_parity(predictor.backend, model, windows).max_abs_err_pct)
 
 
@@ -361,3 +362,116 @@ def bench_source(
 def stats_json(stats: LiveStats, **extra: Any) -> dict[str, Any]:
     """A LiveStats as a JSON-safe dict (NaN -> None), with ``extra`` keys first."""
     return {**extra, **_json_safe(asdict(stats))}
+
+
+# --- the runtime tiers of issue 25: eager torch fp32, the best fp32 runtime, int8 ----------
+TIER_FRAMES = 300  # frames per throughput run of each tier
+
+
+def _tier_backends(model: PressureModel, cache_dir: Any, threads: int | None):
+    """(tier, build) pairs: eager torch fp32, the fastest fp32 runtime that agrees with
+    it (auto selection among the others), and int8 (built without its gate: the gate's
+    figures are reported instead)."""
+    from beadsight.inference.select import auto_candidates, build_backend, select_backend
+
+    others = [c for c in auto_candidates("fp32") if c[0] != "torch"]
+    cache = None if cache_dir in (None, "none") else cache_dir
+    if cache == "default":
+        from beadsight.inference.machine import default_cache_dir
+
+        cache = default_cache_dir()
+    return (
+        ("eager torch fp32", lambda: build_backend(model, "torch", "fp32", threads=threads)),
+        (
+            "best fp32",
+            lambda: select_backend(model, "fp32", None, cache, threads, candidates=others),
+        ),
+        ("int8", lambda: build_backend(model, "int8", "int8", cache_dir=cache, threads=threads)),
+    )
+
+
+def bench_tier(
+    model: PressureModel, backend, frames: np.ndarray, count: int, presses, reference
+) -> dict:
+    """One runtime: max throughput through the predictor and its metric parity
+    (``reference``: fp32 torch's maps of ``presses``)."""
+    from beadsight.inference.metric_parity import metric_parity
+
+    parity = metric_parity(backend, model, presses, reference=reference)
+    predictor = PressurePredictor(model, backend, settings=PredictorSettings(on_gap="ignore"))
+    try:
+        stats = run_max_throughput(predictor, frames, count)
+    finally:
+        predictor.close()
+    return {
+        "backend": backend.describe(),
+        "readings_per_s": stats.hz,
+        "p50_ms": stats.p50_ms,
+        "p99_ms": stats.p99_ms,
+        "metric_parity_ok": parity.ok,
+        "metrics_meaningful": parity.meaningful,
+        "metric_deltas_pct": {k: 100 * v for k, v in parity.deltas.items()},
+        "metrics": parity.candidate,
+    }
+
+
+def bench_tiers(
+    models: dict[str, PressureModel],
+    frames: int = TIER_FRAMES,
+    cache_dir: Any = "default",
+    threads: int | None = None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """For each model: eager torch fp32, the best fp32 runtime and int8, one after another
+    on this CPU: readings/s, p50/p99 latency (ms), speedup over eager torch, and the
+    paper's metrics on held-out simulated presses with their change from fp32 torch."""
+    from beadsight.inference.machine import cpu_flags, cpu_name, cpu_summary
+    from beadsight.inference.metric_parity import simulated_presses
+
+    out: dict[str, Any] = {"cpu": cpu_summary(), "cpu_model": cpu_name(), "flags": cpu_flags()}
+    for name, model in models.items():
+        source, _ = simulated_frames(model.image_size, min(frames, DEFAULT_SOURCE_FRAMES), seed)
+        presses = simulated_presses(model)
+        reference = model.predict(presses.inputs, batch_size=1)
+        rows = []
+        for tier, build in _tier_backends(model, cache_dir, threads):
+            backend = build()
+            row = bench_tier(model, backend, source, frames, presses, reference)
+            rows.append({"tier": tier, **row})
+            log.info("bench tiers: %s %s: %s", name, tier, rows[-1])
+        eager = rows[0]["readings_per_s"]
+        for row in rows:
+            row["speedup_vs_eager"] = row["readings_per_s"] / eager if eager else None
+        out[name] = {
+            "model": {
+                "image_size": model.image_size,
+                "frames": model.frames,
+                "span": model.span,
+                "width": model.meta.model.width,
+                "checkpoint": model.source,
+            },
+            "tiers": rows,
+        }
+    return _json_safe(out)
+
+
+def tiers_summary(result: dict[str, Any]) -> str:
+    """The tiers as a plain-text table, the CPU first."""
+    lines = [result["cpu"]]
+    for name, entry in result.items():
+        if not isinstance(entry, dict) or "tiers" not in entry:
+            continue
+        m = entry["model"]
+        lines.append(f"{name}: {m['image_size']} px, width {m['width']}, {m['frames']} frames")
+        for row in entry["tiers"]:
+            deltas = ", ".join(
+                f"{k} {v:+.2f}%" if v is not None else f"{k} n/a"
+                for k, v in row["metric_deltas_pct"].items()
+            )
+            gate = "passes" if row["metric_parity_ok"] else "fails"
+            lines.append(
+                f"  {row['tier']:16s} {row['backend']:14s} {row['readings_per_s'] or 0:7.1f}/s "
+                f"p50 {row['p50_ms'] or 0:6.1f} ms p99 {row['p99_ms'] or 0:6.1f} ms "
+                f"x{row['speedup_vs_eager'] or 0:.2f}  metric gate {gate}: {deltas}"
+            )
+    return "\n".join(lines)

@@ -38,8 +38,9 @@ from urllib.parse import quote
 from beadsight import __version__
 from beadsight.config import SensorGeometry
 from beadsight.files import atomic_write_text
+from beadsight.metrics import REGION_GRID
 from beadsight.report.force_plots import force_error_caption, force_scatter_caption
-from beadsight.report.paper import PAPER_METRICS, REGION_GRID, TABLE_ROWS, compare_with_paper
+from beadsight.report.paper import PAPER_METRICS, TABLE_ROWS, compare_with_paper
 from beadsight.report.plots import (
     examples_caption,
     force_traces_caption,

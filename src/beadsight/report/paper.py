@@ -1,12 +1,11 @@
 """The paper's figures, and the tables that set a run's metrics beside them.
 
 BeadSight, George et al. 2024, table of results: :data:`PAPER_METRICS`; the metrics are
-defined in :mod:`beadsight.evaluation.metrics`.
+defined in :mod:`beadsight.metrics`.
 """
 
 from __future__ import annotations
 
-REGION_GRID = 4  # the paper's 4 x 4 grid of press-location cells (10.25 mm at 41 mm)
 PAPER_METRICS: dict[str, float] = {
     "mae_kpa": 0.79,
     "force_error_pct": 11.9,

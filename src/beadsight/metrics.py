@@ -43,8 +43,9 @@ import numpy as np
 
 from beadsight.config import SensorGeometry
 from beadsight.geometry import centre_of_pressure_mm, mm_to_px, otsu_masks, total_force_n
-from beadsight.report.paper import REGION_GRID
 
+REGION_GRID = 4  # the paper's 4 x 4 grid of press-location cells (10.25 mm at 41 mm)
+PAPER_METRIC_KEYS = ("mae_kpa", "force_error_pct", "cop_error_mm", "iou", "worst_region_mae_kpa")
 MIN_SHAPE_FORCE_N = 2.0  # CoP and IoU only on frames with at least this true force (paper)
 
 

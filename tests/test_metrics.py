@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 from beadsight.config import SensorGeometry
-from beadsight.evaluation.metrics import (
+from beadsight.geometry import disk_maps, otsu_masks, otsu_thresholds
+from beadsight.metrics import (
     MIN_SHAPE_FORCE_N,
     MetricsAccumulator,
     compute_metrics,
     contact_iou,
     region_cells,
 )
-from beadsight.geometry import disk_maps, otsu_masks, otsu_thresholds
 from beadsight.report.paper import PAPER_METRICS, format_metrics_table
 
 G = SensorGeometry(image_size_px=64)
@@ -262,3 +262,10 @@ def test_format_metrics_table():
     for value in ("0.790", "0.810", "1.050"):
         assert value in text
     assert math.isfinite(m["mae_kpa"])
+
+
+def test_the_gated_metrics_are_the_papers():
+    from beadsight.metrics import PAPER_METRIC_KEYS
+    from beadsight.report.paper import PAPER_METRICS
+
+    assert tuple(PAPER_METRICS) == PAPER_METRIC_KEYS

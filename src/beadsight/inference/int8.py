@@ -1,0 +1,242 @@
+"""INT8: OpenVINO running the model after NNCF post-training quantization.
+
+The checkpoint is exported to ONNX (the same cached file the ``onnx`` and ``openvino``
+runtimes use), quantized by :func:`nncf.quantize` on **simulated windows that include
+presses** (:func:`calibration_windows`: the simulator at the model's size, a seed the
+metric gate never uses), and saved as OpenVINO IR under ``cache_dir/int8`` keyed by the
+checkpoint's fingerprint, the machine, the calibration and the recipe; later runs load
+it.
+
+The recipe (:class:`QuantizationRecipe`, default :data:`ACCURATE`) was chosen by the
+metric gate on the shipped simulator model: NNCF's defaults (symmetric activations,
+ranges averaged over the calibration windows, every convolution in int8:
+:data:`NNCF_DEFAULT`) cut the pressure peaks and lit the background, doubling the
+pressure MAE (+99 %) and the force error (+118 %). Asymmetric activations (the
+``mixed`` preset) with min/max ranges brought that to +1.5 % / +3.9 %, and keeping the
+full-resolution blocks (the first and last conv blocks and the output conv, about 40 %
+of the convolution work at the reference size) in fp32 to within 2 % on every metric.
+
+Whether the result may be used is decided on the paper's metrics, not pixel by pixel:
+:func:`beadsight.inference.metric_parity.metric_parity` (the ``int8`` runtime and auto
+selection both apply it; :func:`cached_metric_parity` keeps its result beside the model).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from beadsight.checkpoint import PressureModel
+from beadsight.errors import ConfigError
+from beadsight.files import atomic_write, atomic_write_json
+from beadsight.inference.backend import BackendUnavailableError
+from beadsight.inference.config import INT8
+from beadsight.inference.export_format import model_fingerprint
+from beadsight.inference.machine import machine_key
+from beadsight.inference.metric_parity import (
+    GATE_KEY,
+    MetricParity,
+    metric_parity,
+    simulated_presses,
+)
+from beadsight.inference.runtimes import OpenVinoBackend
+
+log = logging.getLogger(__name__)
+
+CALIBRATION_SEED = 4242  # simulator seed of the calibration presses (not the gate's)
+CALIBRATION_PRESSES = 3
+CALIBRATION_WINDOWS_PER_PRESS = 10  # 30 windows: NNCF's statistics need a few dozen
+CALIBRATION_CONTACT_SHARE = 0.75  # most calibration windows in contact: the peaks' range
+CALIBRATION_VERSION = "sim-presses-v1"  # change when the calibration windows change
+
+
+@dataclass(frozen=True)
+class QuantizationRecipe:
+    """How NNCF quantizes: preset, activation ranges and the blocks kept in fp32."""
+
+    preset: str = "mixed"  # "mixed": asymmetric activations; "performance": symmetric
+    ranges: str = "minmax"  # "minmax": widest seen; "mean_minmax": NNCF's default average
+    fp32_blocks: tuple[str, ...] = ("C1", "C9", "pred")  # UNet submodules not quantized
+
+    def __post_init__(self) -> None:
+        if self.preset not in ("mixed", "performance"):
+            raise ConfigError(f"preset must be 'mixed' or 'performance', got {self.preset!r}")
+        if self.ranges not in ("minmax", "mean_minmax"):
+            raise ConfigError(f"ranges must be 'minmax' or 'mean_minmax', got {self.ranges!r}")
+
+    @property
+    def key(self) -> str:
+        return f"{self.preset}-{self.ranges}-{'+'.join(self.fp32_blocks) or 'all'}"
+
+    def nncf_options(self, nncf) -> dict:
+        """Keyword arguments of :func:`nncf.quantize` for this recipe."""
+        from nncf.quantization.advanced_parameters import AdvancedQuantizationParameters
+        from nncf.quantization.range_estimator import RangeEstimatorParametersSet
+
+        options: dict = {
+            "preset": nncf.QuantizationPreset.MIXED
+            if self.preset == "mixed"
+            else nncf.QuantizationPreset.PERFORMANCE
+        }
+        if self.ranges == "minmax":
+            options["advanced_parameters"] = AdvancedQuantizationParameters(
+                activations_range_estimator_params=RangeEstimatorParametersSet.MINMAX
+            )
+        if self.fp32_blocks:  # names of torch's ONNX export: /net/C1/layer/layer.0/Conv
+            pattern = f".*/net/({'|'.join(self.fp32_blocks)})/.*"
+            options["ignored_scope"] = nncf.IgnoredScope(patterns=[pattern])
+        return options
+
+
+ACCURATE = QuantizationRecipe()  # the default: passes the metric gate on the shipped model
+NNCF_DEFAULT = QuantizationRecipe("performance", "mean_minmax", ())  # fails it (measured)
+
+
+def calibration_windows(model: PressureModel) -> np.ndarray:
+    """(K, inputs, S, S, 3) uint8 RGB windows of simulated presses (most in contact)."""
+    presses = simulated_presses(
+        model,
+        CALIBRATION_PRESSES,
+        CALIBRATION_SEED,
+        CALIBRATION_WINDOWS_PER_PRESS,
+        CALIBRATION_CONTACT_SHARE,
+    )
+    return presses.inputs
+
+
+def _calibration_key(windows: np.ndarray | None, recipe: QuantizationRecipe) -> str:
+    if windows is None:
+        recipe_text = f"{CALIBRATION_VERSION}|{CALIBRATION_SEED}|{CALIBRATION_PRESSES}"
+        data = f"{recipe_text}|{CALIBRATION_WINDOWS_PER_PRESS}".encode()
+    else:
+        data = np.ascontiguousarray(windows).tobytes()
+    return hashlib.sha256(data + recipe.key.encode()).hexdigest()[:12]
+
+
+def _openvino():
+    try:
+        import nncf
+        import openvino as ov
+    except ImportError:
+        raise BackendUnavailableError(
+            "int8: needs openvino and nncf; `pip install beadsight[openvino]`"
+        ) from None
+    return ov, nncf
+
+
+def quantize(
+    onnx_path: Path,
+    shape: tuple[int, ...],
+    windows: np.ndarray,
+    out: Path,
+    recipe: QuantizationRecipe = ACCURATE,
+) -> Path:
+    """Quantize the ONNX model at ``onnx_path`` (input reshaped to ``shape``) with NNCF on
+    ``windows`` ((K, inputs, S, S, 3) uint8) as ``recipe`` says; write OpenVINO IR
+    ``out`` (.xml + .bin)."""
+    ov, nncf = _openvino()
+    ov_model = ov.Core().read_model(str(onnx_path))
+    ov_model.reshape({ov_model.inputs[0]: list(shape)})
+    data = nncf.Dataset(list(windows), lambda w: w[None])
+    nncf_log = logging.getLogger("nncf")  # its handler writes INFO lines to stdout
+    level = nncf_log.level
+    nncf_log.setLevel(logging.WARNING)
+    try:
+        with contextlib.redirect_stdout(sys.stderr):  # its progress bar: keep stdout clean
+            quantized = nncf.quantize(
+                ov_model, data, subset_size=len(windows), **recipe.nncf_options(nncf)
+            )
+    finally:
+        nncf_log.setLevel(level)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=".beadsight-") as tmp:
+        staged = Path(tmp) / "model.xml"
+        ov.save_model(quantized, str(staged), compress_to_fp16=False)
+        for src, dst in ((staged.with_suffix(".bin"), out.with_suffix(".bin")), (staged, out)):
+            atomic_write(dst, lambda f, src=src: f.write(src.read_bytes()))
+    return out
+
+
+class Int8Backend(OpenVinoBackend):
+    """OpenVINO on an NNCF-quantized copy of the model (module docstring).
+
+    calibration: (K, inputs, S, S, 3) uint8 windows to calibrate on instead of
+    :func:`calibration_windows`; recipe: how to quantize (default :data:`ACCURATE`). A
+    model calibrated on other data or by another recipe is cached apart.
+    """
+
+    name = "int8"
+    precisions = (INT8,)
+
+    def __init__(
+        self,
+        model: PressureModel,
+        precision: str = INT8,
+        cache_dir: Path | None = None,
+        threads: int | None = None,
+        calibration: np.ndarray | None = None,
+        recipe: QuantizationRecipe = ACCURATE,
+    ):
+        self._calibration = calibration
+        self.recipe = recipe
+        self.model_key = f"{model_fingerprint(model)[:24]}-{machine_key()}-"
+        self.model_key += _calibration_key(calibration, recipe)
+        super().__init__(model, precision, None, cache_dir, threads)
+
+    def _check_available(self) -> None:
+        _openvino()
+
+    def _load(self, path: Path, threads: int, cache_dir: Path | None) -> None:
+        ov, _ = _openvino()
+        folder = Path(cache_dir) / "int8" if cache_dir else Path(tempfile.mkdtemp(prefix="bs-"))
+        xml = folder / f"{self.model_key}.xml"
+        if not (xml.is_file() and xml.with_suffix(".bin").is_file()):
+            windows = self._calibration
+            if windows is None:
+                windows = calibration_windows(self.model)
+            log.info("int8: quantizing with NNCF on %d simulated windows -> %s", len(windows), xml)
+            quantize(path, self._shape, windows, xml, self.recipe)
+        else:
+            log.info("int8: loading cached %s", xml)
+        config = {
+            "INFERENCE_PRECISION_HINT": "f32",  # what is not quantized stays fp32
+            "INFERENCE_NUM_THREADS": threads,
+            "PERFORMANCE_HINT": "LATENCY",
+            "NUM_STREAMS": 1,
+        }
+        self.compiled = ov.Core().compile_model(str(xml), "CPU", config)
+        self.request = self.compiled.create_infer_request()
+        self.config = config
+        self.quantized_path = xml
+        self.cache_dir = Path(cache_dir) if cache_dir else None
+
+
+def cached_metric_parity(backend: Int8Backend, model: PressureModel) -> MetricParity:
+    """:func:`metric_parity` of ``backend``, kept in ``cache_dir/int8/<key>-parity-<gate>.json``
+    (the held-out presses are simulated and run through fp32 torch only once)."""
+    path = None
+    if backend.cache_dir is not None:
+        path = backend.cache_dir / "int8" / f"{backend.model_key}-parity-{GATE_KEY}.json"
+        try:
+            data = json.loads(path.read_text())
+            return MetricParity(
+                data["backend"],
+                data["reference"],
+                data["candidate"],
+                int(data["windows"]),
+                data["zero"],
+            )
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    parity = metric_parity(backend, model)
+    if path is not None:
+        atomic_write_json(path, parity.to_dict())
+    return parity

@@ -1,0 +1,123 @@
+"""The int8 runtime (OpenVINO + NNCF) and the metric-level gate it must pass.
+
+Measured here, not assumed: NNCF's default post-training quantization
+(:data:`NNCF_DEFAULT`) of the shipped simulator model (64 px, width 8, rest-referenced)
+roughly doubles its pressure MAE on held-out simulated presses, so the gate must refuse
+it, by name, with the metric; the default recipe (:data:`ACCURATE`) keeps every metric
+within 2 % and is accepted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from beadsight.assets import shipped_model_path
+from beadsight.checkpoint import load_checkpoint
+from beadsight.inference.int8 import (
+    NNCF_DEFAULT,
+    Int8Backend,
+    cached_metric_parity,
+    calibration_windows,
+)
+from beadsight.inference.metric_parity import (
+    HELDOUT_PRESSES,
+    METRIC_TOLERANCE,
+    WINDOWS_PER_PRESS,
+    MetricParity,
+    MetricParityError,
+    metric_parity,
+    require_metric_parity,
+    simulated_presses,
+)
+from beadsight.inference.select import build_backend, create_backend, select_backend
+
+
+@pytest.fixture(scope="module")
+def sim_model():
+    return load_checkpoint(shipped_model_path())
+
+
+@pytest.fixture(scope="module")
+def heldout(sim_model):
+    return simulated_presses(sim_model)
+
+
+def test_heldout_presses_are_presses(sim_model, heldout):
+    assert heldout.inputs.shape[1:] == (sim_model.inputs, 64, 64, 3)
+    # evenly over each press: approach, contact and release, as evaluate weighs them
+    assert 0.2 < heldout.contact.mean() < 0.8 and (heldout.force_n[heldout.contact] > 2).sum() >= 20
+    assert len(heldout.inputs) == HELDOUT_PRESSES * WINDOWS_PER_PRESS
+    calib = calibration_windows(sim_model)
+    assert not np.array_equal(calib[: len(heldout.inputs)], heldout.inputs)  # another seed
+
+
+def test_an_fp32_runtime_passes_the_metric_gate(sim_model, heldout):
+    backend = build_backend(sim_model, "openvino", "fp32", cache_dir=None)
+    parity = metric_parity(backend, sim_model, heldout)
+    assert parity.ok and parity.meaningful and parity.windows == len(heldout.inputs)
+    assert max(abs(d) for d in parity.deltas.values()) < 1e-3
+
+
+def test_metric_gate_judges_relative_change():
+    ref = {"mae_kpa": 1.0, "iou": 0.5, "force_error_pct": 10.0}
+    zero = {"mae_kpa": 2.0, "iou": 0.0, "force_error_pct": 100.0}
+    near = {"mae_kpa": 1.019, "iou": 0.491, "force_error_pct": 10.1}
+    assert MetricParity("x", ref, near, 5, zero).ok
+    far = MetricParity("x", ref, {"mae_kpa": 1.03, "iou": 0.5, "force_error_pct": 10.0}, 5, zero)
+    assert not far.ok and far.worst[0] == "mae_kpa"
+    missing = {"mae_kpa": 1.0, "iou": None, "force_error_pct": 10.0}
+    assert not MetricParity("x", ref, missing, 5, zero).ok
+    # a model no better than an all-zero map: its metrics cannot vouch for a runtime
+    useless = MetricParity("x", ref, ref, 5, {"mae_kpa": 0.9, "force_error_pct": 100.0})
+    assert not useless.meaningful and not useless.ok and "all-zero map" in str(useless)
+
+
+def test_an_untrained_model_cannot_pass_the_metric_gate(probe_model, tmp_path):
+    backend = build_backend(probe_model, "openvino", "fp32", cache_dir=None)
+    parity = metric_parity(backend, probe_model, simulated_presses(probe_model, presses=1))
+    assert max(abs(d) for d in parity.deltas.values()) < 1e-3  # the runtime agrees ...
+    assert not parity.meaningful and not parity.ok  # ... but the metrics cannot tell
+
+
+def test_int8_that_moves_the_metrics_is_refused(sim_model, heldout, tmp_path):
+    coarse = Int8Backend(sim_model, cache_dir=tmp_path, recipe=NNCF_DEFAULT)
+    parity = metric_parity(coarse, sim_model, heldout)
+    assert parity.meaningful and not parity.ok
+    assert parity.deltas["mae_kpa"] > 0.2  # measured: about +99 %
+    with pytest.raises(MetricParityError) as err:
+        require_metric_parity(coarse, sim_model, parity)
+    message = str(err.value)
+    assert "int8/int8" in message and "relative to fp32 torch" in message
+    assert f"allowed {100 * METRIC_TOLERANCE:g} %" in message and "mae_kpa" in message
+    assert coarse.request is None  # closed
+
+
+def test_int8_that_keeps_the_metrics_is_accepted_and_cached(sim_model, heldout, tmp_path):
+    backend = create_backend(sim_model, "int8", cache_dir=tmp_path)  # gate passed
+    try:
+        assert backend.describe() == "int8/int8" and backend.parity.ok
+        assert all(abs(d) <= METRIC_TOLERANCE for d in backend.parity.deltas.values())
+        assert len(list((tmp_path / "int8").glob("*.xml"))) == 1  # beside the other caches
+        assert len(list((tmp_path / "int8").glob("*-parity-*.json"))) == 1
+        out = backend.run_batch(heldout.inputs[:3])
+        assert out.shape == (3, 64, 64) and out.dtype == np.float32 and np.isfinite(out).all()
+        again = Int8Backend(sim_model, cache_dir=tmp_path)
+        assert again.quantized_path == backend.quantized_path
+        np.testing.assert_array_equal(again.run_batch(heldout.inputs[:3]), out)
+        assert cached_metric_parity(again, sim_model).deltas == backend.parity.deltas
+    finally:
+        backend.close()
+
+
+def test_auto_drops_an_int8_candidate_that_fails_the_gate(probe_model, tmp_path):
+    # an untrained model's metrics cannot vouch for int8: auto keeps an fp32 runtime
+    chosen = select_backend(
+        probe_model, cache_dir=tmp_path, candidates=[("int8", "int8"), ("openvino", "fp32")]
+    )
+    try:
+        assert chosen.describe() == "openvino/fp32"
+        notes = {c.backend: c.note for c in chosen.selection}
+        assert notes["int8"].startswith("rejected") and "all-zero map" in notes["int8"]
+    finally:
+        chosen.close()

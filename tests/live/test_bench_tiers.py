@@ -1,0 +1,32 @@
+"""`beadsight bench live --tiers`: eager torch, the best fp32 runtime and int8 on one CPU."""
+
+from __future__ import annotations
+
+import json
+
+from beadsight.assets import shipped_model_path
+from beadsight.checkpoint import load_checkpoint
+from beadsight.live.bench import bench_tiers, tiers_summary
+
+
+def test_tiers_report_rate_latency_speedup_and_metric_deltas(tmp_path):
+    model = load_checkpoint(shipped_model_path())
+    result = bench_tiers({"shipped": model}, frames=40, cache_dir=tmp_path, threads=None)
+    json.dumps(result, allow_nan=False)  # strict JSON: --json prints it
+    assert result["cpu"].startswith("CPU: ") and isinstance(result["flags"], list)
+    rows = result["shipped"]["tiers"]
+    assert [r["tier"] for r in rows] == ["eager torch fp32", "best fp32", "int8"]
+    assert rows[0]["backend"] == "torch/fp32" and rows[0]["speedup_vs_eager"] == 1.0
+    assert rows[1]["backend"].endswith("/fp32") and rows[2]["backend"] == "int8/int8"
+    for row in rows:
+        assert row["readings_per_s"] > 0 and 0 < row["p50_ms"] <= row["p99_ms"]
+        assert set(row["metric_deltas_pct"]) >= {"mae_kpa", "force_error_pct", "iou"}
+    assert (
+        rows[0]["metric_parity_ok"] and max(map(abs, rows[0]["metric_deltas_pct"].values())) < 1e-3
+    )
+    assert rows[1]["metric_parity_ok"]
+    # the default int8 recipe keeps every paper metric within 2 % on this model
+    assert rows[2]["metric_parity_ok"] and max(map(abs, rows[2]["metric_deltas_pct"].values())) <= 2
+    assert max(map(abs, rows[2]["metric_deltas_pct"].values())) > 0  # it is not fp32
+    text = tiers_summary(result)
+    assert "int8/int8" in text and "metric gate passes" in text and result["cpu"] in text
