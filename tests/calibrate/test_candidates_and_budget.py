@@ -19,6 +19,7 @@ from beadsight.calibrate.run import calibrate, choose
 from beadsight.cli import main
 from beadsight.config import ConfigError
 from beadsight.data.rest import RestReference, load_rest_file
+from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import evaluate
 
 
@@ -51,7 +52,9 @@ def test_presses_0_from_the_data_uses_no_press_and_writes_a_usable_checkpoint(
     assert model.meta.pixel_mean != [120.0] * 3
     assert model.meta.training["calibration"]["presses_used"] == 0
     # usable: evaluate scores its stored test split (every press, none trained on)
-    again = evaluate(out / "model.pt", data, split="test", progress=False, plots=False)
+    again = evaluate(
+        out / "model.pt", data, EvaluateConfig(split="test", progress=False, plots=False)
+    )
     assert again["split_source"] == "checkpoint" and again["presses"] == 4
     if metrics["frames"] == again["frames"]:  # all test frames fitted in the budget
         assert again["mae_kpa"] == pytest.approx(metrics["mae_kpa"], rel=1e-5)
