@@ -80,8 +80,10 @@ def _check_live_page(page, tmp_path: Path) -> None:
         timeout=20_000,
     ).json_value()
     assert all(re.fullmatch(r"\d+\.\d\d", f) for f in set(seen) - {"–"}), seen
+    # the sensor's measured rate: positive, at most the video's pace (60 fps); how far below
+    # 30 Hz it is depends on the machine's load (9.4 Hz seen with three jobs on 2 cores)
     rate = float(page.locator("#rate").inner_text())
-    assert 10 < rate < 60, rate
+    assert 0 < rate < 60, rate
     assert float(page.locator("#latency-p50").inner_text()) > 0
     # the health chip shows a state from the sensor (no rest reference yet: unknown, or
     # ok once still rest frames were seen), with its message as the tooltip
