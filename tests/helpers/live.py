@@ -165,3 +165,10 @@ def wait_until(predicate, timeout_s: float = 20.0, what: str = "condition") -> N
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         time.sleep(0.01)
+
+
+def live_sim_args(checkpoint) -> list[str]:
+    """``beadsight live`` on the simulated sensor with ``checkpoint`` on eager torch fp32 (fast
+    to build), headless: the start of a test's command line."""
+    args = "live --checkpoint {} --source sim --backend torch --precision fp32 --no-viewer"
+    return [a.format(checkpoint) for a in args.split()]

@@ -21,6 +21,7 @@ from helpers.live import (
     ScriptedSource,
     StatusLog,
     live_argv,
+    live_sim_args,
     press_frames,
     wait_until,
     write_video,
@@ -455,16 +456,7 @@ def test_cli_live_sim_headless_straight_to_mcap(model, tmp_path, capsys):
     out = tmp_path / "sim.mcap"
     code = main(
         [
-            "live",
-            "--checkpoint",
-            str(checkpoint),
-            "--source",
-            "sim",
-            "--backend",
-            "torch",
-            "--precision",
-            "fp32",
-            "--no-viewer",
+            *live_sim_args(checkpoint),
             "--output",
             str(out),
             "--frames",
