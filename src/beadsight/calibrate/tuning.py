@@ -135,7 +135,7 @@ def fine_tune_candidates(
         cand.budget_s = share
         t0 = time.monotonic()
         tc = candidate_config(name, config, base, start_path, out)
-        tc = _with_val_stride(tc, data["windows"]["val"], val_frames)
+        tc = with_val_stride(tc, data["windows"]["val"], val_frames)
         with budget.stage(f"training {name}"):
             best, info = train_candidate(tc, t0 + share - score_s, end_s)
         setup_s = info["setup_s"]
@@ -159,6 +159,6 @@ def fine_tune_candidates(
         )
 
 
-def _with_val_stride(tc: TrainConfig, val_windows: int, val_frames: int) -> TrainConfig:
+def with_val_stride(tc: TrainConfig, val_windows: int, val_frames: int) -> TrainConfig:
     """The trainer validates on about ``val_frames`` of the ``val_windows`` windows."""
     return dataclasses.replace(tc, val_stride=max(1, math.ceil(val_windows / max(val_frames, 1))))
