@@ -156,8 +156,9 @@ class Record:
                     )
         else:
             self.data = {"settings": settings, "cpu": [], "pouches": []}
-        if cpu_summary() not in self.data["cpu"]:
-            self.data["cpu"].append(cpu_summary())
+        cpus = self.data.setdefault("cpu", [])  # every CPU that ran it
+        if cpu_summary() not in cpus:
+            cpus.append(cpu_summary())
 
     def pouch(self, family: str, seed: int, presses: int, data: str) -> dict:
         """The entry of pouch (``family``, ``seed``), made if new."""
