@@ -1,14 +1,19 @@
 """The figures of benchmarks/live_response.py and benchmarks/steady_press.py, on made-up
-readings whose answers are known."""
+readings whose answers are known; benchmarks/live_offline.py end to end on a tiny
+simulated dataset."""
 
 from __future__ import annotations
 
 import importlib.util
+import json
+import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from beadsight.live.recording.readings import open_readings
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 FPS = 30.0
@@ -67,3 +72,44 @@ def test_steady_press_judges_the_held_frames_and_counts_rests_under_load():
     assert result.seconds == pytest.approx(10 - 1.5, abs=0.1)
     assert steady.judge(rows, [1001.3, 1003.8]).rests_while_loaded == 2  # t = 5.2 s, 15.2 s
     assert steady.judge(rows, [1003.8 + 8 / FPS / 4]).rests_while_loaded == 0  # t = 15.47 s
+
+
+def test_live_offline_scores_both_rows_on_a_simulated_dataset(tmp_path):
+    """End to end through the real CLI: simulate, evaluate, live replay, compare."""
+    from helpers.live import tiny_model
+
+    data = tmp_path / "sim.h5"
+    simulate = ["simulate", "--presses", "2", "--image-size", "64", "--out", str(data)]
+    done = subprocess.run(
+        [sys.executable, "-m", "beadsight", *simulate, "--no-progress"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    checkpoint = tiny_model().save(tmp_path / "tiny.pt")
+    command = [sys.executable, str(BENCHMARKS / "live_offline.py"), str(data)]
+    command += ["--checkpoint", str(checkpoint), "--work", str(tmp_path / "work")]
+    command += ["--backend", "torch"]  # live's auto would time every runtime first
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.strip().splitlines()
+    assert lines[1].startswith("offline ") and lines[2].startswith("live ")  # both rows
+    figures = json.loads(lines[-1])
+    rows, why = figures["rows"], figures["why"]
+    assert rows["offline"]["frames"] > 0 and rows["live"]["frames"] > 0
+    with open_readings(tmp_path / "work" / "live.h5") as rf:
+        assert why["readings"] == len(rf)
+    valid = why["valid_frames"]
+    assert rows["live"]["coverage"] == pytest.approx(rows["live"]["frames"] / valid, abs=1e-4)
+    assert rows["live"]["frames"] + why["valid_frames_without_reading"] == valid
+    compared = rows["live_on_offline_frames"]["frames"]
+    assert compared == rows["offline_on_live_frames"]["frames"] == why["compared_with_offline"]
+    assert compared + why["readings_offline_does_not_score"] == rows["live"]["frames"]
+    assert why["differ_from_offline"] == (
+        why["differ_after_a_late_frame"] + why["differ_without_a_late_frame"]
+    )
+    offline = json.loads((tmp_path / "work" / "offline" / "metrics.json").read_text())
+    assert rows["offline"]["mae_kpa"] == offline["mae_kpa"]
+    assert rows["offline"]["frames"] == offline["frames"]
+    assert figures["offline_backend"] == figures["live_backend"] == "torch/fp32"

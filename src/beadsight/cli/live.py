@@ -29,7 +29,11 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
         help="checkpoint file (.pt); default: the shipped sim model",
     )
     # LiveSensor / run_live settings: None = not given, the library's default applies
-    p.add_argument("--source", default=None, help="camera index (0, 1, ...), video file, or sim")
+    p.add_argument(
+        "--source",
+        default=None,
+        help="camera index (0, 1, ...), video file, dataset file (.h5: its rows replayed), or sim",
+    )
     p.add_argument(
         "--backend",
         default=None,
@@ -47,9 +51,10 @@ def _live_arguments(p: argparse.ArgumentParser) -> None:
         "--fps",
         type=float,
         default=None,
-        help="simulator rate (default: its camera rate) or rate asked of a camera; videos play at their own rate",
+        help="simulator rate (default: its camera rate), replayed dataset rate (default: the file's) "
+        "or rate asked of a camera; videos play at their own rate",
     )
-    p.add_argument("--loop", action="store_true", help="restart a video file at its end")
+    p.add_argument("--loop", action="store_true", help="restart a video or dataset file at its end")
     p.add_argument("--seed", type=int, default=None, help="simulator seed")
     drift_arguments(p)
     _output_arguments(p)

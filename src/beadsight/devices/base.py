@@ -152,7 +152,9 @@ class Frame:
     frames you read means frames were skipped or dropped in between. ``t_mono`` /
     ``t_unix``: host time the frame was captured (s); ``t_unix`` strictly increases from
     frame to frame. ``reference_force_n``: the true force on the sensor when the camera
-    knows it (the simulator), else NaN.
+    knows it (the simulator), else NaN. ``file_index``: the frame's row in the file the
+    camera plays (a replayed dataset, :class:`~beadsight.devices.replay.DatasetCamera`),
+    None for cameras that do not play one; unlike ``index`` it starts again on a loop.
     """
 
     image: np.ndarray
@@ -161,6 +163,13 @@ class Frame:
     t_unix: float
     channel_order: str = "BGR"
     reference_force_n: float = math.nan
+    file_index: int | None = None
+
+    @property
+    def source_index(self) -> int:
+        """Where the frame sits in its source: ``file_index`` when the camera plays a
+        file, else ``index`` (what readings files record as ``frame_index``)."""
+        return self.index if self.file_index is None else self.file_index
 
     @property
     def timestamp_s(self) -> float:

@@ -69,7 +69,9 @@ MIN_READ_TIMEOUT_S = 2.0  # default read timeout: max(this, 10 frame periods)
 MIN_TIMESTAMP_STEP_S = 1e-6  # consecutive t_unix stamps differ by at least this
 QUEUE_FULL_POLL_S = 0.1  # a file reader waiting on a full queue checks for close this often
 
-Captured = tuple[np.ndarray, float]  # (image, reference_force_n) as a capture hook returns it
+# what a capture hook returns: (image, reference_force_n), or with the frame's row in the
+# file the camera plays: (image, reference_force_n, file_index)
+Captured = tuple[np.ndarray, float] | tuple[np.ndarray, float, int]
 
 
 @dataclass(frozen=True)
@@ -138,8 +140,9 @@ class BufferedCamera(DeviceContext):
     """Base class of every camera: see the module docstring and :class:`~beadsight.devices.Camera`.
 
     Subclasses implement ``_open() -> fps`` (open the source; fps in frames per *host*
-    second), ``_grab() -> (image, reference_force_n) or None`` (None: the stream ended,
-    after calling :meth:`_end`), ``_release()``, and may override ``_mode_hint()``,
+    second), ``_grab() -> (image, reference_force_n[, file_index]) or None`` (None: the
+    stream ended, after calling :meth:`_end`; ``file_index``: the frame's row in the file
+    the camera plays, :attr:`Frame.file_index`), ``_release()``, and may override ``_mode_hint()``,
     ``_disconnect_hint()`` and ``_pace_delay_s()``. ``_grab`` is called once in
     :meth:`connect` (to verify the frame size) and then on the reader thread.
 
@@ -239,7 +242,7 @@ class BufferedCamera(DeviceContext):
             self._release()
             raise
         self.width, self.height, self.fps = width, height, fps
-        self._first = (image, first[1])
+        self._first = (image, *first[1:])
         with self._cond:  # a reconnect starts a fresh stream; indices keep counting up
             self._queue.clear()
             self._latest = None
@@ -377,7 +380,7 @@ class BufferedCamera(DeviceContext):
                 t_unix, t_mono = host_now()
                 if captured is None or stop.is_set():
                     break
-                self._push(check_image(self.name, captured[0]), captured[1], t_unix, t_mono)
+                self._push(check_image(self.name, captured[0]), captured[1:], t_unix, t_mono)
         except Exception as e:  # noqa: BLE001 - a backend failure ends the stream, with its reason
             logger.exception("%s: capture failed", self.name)
             self._end(f"capture failed ({e})")
@@ -390,7 +393,8 @@ class BufferedCamera(DeviceContext):
                     "%s: %s after %d frames", self.name, self._end_reason, self._captured
                 )
 
-    def _push(self, image: np.ndarray, force_n: float, t_unix: float, t_mono: float) -> None:
+    def _push(self, image: np.ndarray, extra: tuple, t_unix: float, t_mono: float) -> None:
+        """Queue a captured frame; ``extra``: (reference_force_n[, file_index])."""
         with self._cond:
             self._truth.add(image, t_mono)  # a file's repeated frames are a camera's too
             if self.live:
@@ -400,7 +404,7 @@ class BufferedCamera(DeviceContext):
                     self._cond.wait(QUEUE_FULL_POLL_S)
             self._last_t_unix = max(t_unix, self._last_t_unix + MIN_TIMESTAMP_STEP_S)
             frame = Frame(
-                image, self._captured, t_mono, self._last_t_unix, self.channel_order, force_n
+                image, self._captured, t_mono, self._last_t_unix, self.channel_order, *extra
             )
             self._captured += 1
             if len(self._queue) >= self._queue_frames:

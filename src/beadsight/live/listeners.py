@@ -36,7 +36,8 @@ class LiveUpdate:
     latency_s: capture -> reading available, s (capture timestamp to the moment the
         reading left the predictor).
     reference_force_n: the true force if the source knows it (the simulator), else NaN.
-    source_index: the frame's index in the source's stream.
+    source_index: the frame's index in the source: its row in a replayed dataset, else its
+        capture index (:attr:`beadsight.devices.Frame.source_index`).
     health: the sensor's drift health (:class:`~beadsight.health.monitor.HealthReport`:
         ``state``, ``message``, ``figures``), or None where it is not tracked.
     """

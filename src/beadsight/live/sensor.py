@@ -454,16 +454,16 @@ class LiveSensor:
             if self.watch is not None:
                 self.watch.observe(rgb, frame.timestamp_s)
             return
-        health = None
-        if self.watch is not None:
-            report = self.watch.process(rgb, reading)
-            health = report if self.settings.health else None
+        report = self.watch.process(rgb, reading) if self.watch is not None else None
+        health = report if self.settings.health else None
         latency = time.time() - frame.timestamp_s
         self._meter.add_reading(
             time.monotonic(), latency, reading.latency_s, reading.dropped_frames
         )
         self._set_status("ok", f"{self.source.name}")
-        update = LiveUpdate(reading, rgb, latency, frame.reference_force_n, frame.index, health)
+        update = LiveUpdate(
+            reading, rgb, latency, frame.reference_force_n, frame.source_index, health
+        )
         for listener in self._listeners:
             self._call(listener.push, update)
 

@@ -2,13 +2,13 @@
 
 Live sensing reads any :class:`beadsight.devices.Camera` - the same camera classes that
 collection records from: :func:`open_camera` turns a ``--source`` (``"sim"``, a camera
-index or device path, a video file) into one. The camera's reader thread keeps the
+index or device path, a dataset file to replay, a video file) into one. The camera's reader thread keeps the
 frames with their capture timestamps (capture never waits for inference);
 :meth:`~beadsight.devices.Camera.async_read` hands the sensor every frame since its last
 read, so its temporal window stays consecutive. The camera's errors drive the sensor:
 :class:`~beadsight.devices.CameraDisconnectedError` (a live camera was lost: reopen it
-with backoff), :class:`~beadsight.devices.CameraEndedError` (a video or the simulator
-ended), :class:`~beadsight.devices.DeviceTimeoutError` (no frame for a while).
+with backoff), :class:`~beadsight.devices.CameraEndedError` (a video, a replayed dataset
+or the simulator ended), :class:`~beadsight.devices.DeviceTimeoutError` (no frame for a while).
 
 :func:`frame_converter` decides, from the first frame, how frames become the model's
 input: (S, S, 3) uint8 RGB.
@@ -42,16 +42,20 @@ def open_camera(
     drift: str | None = None,
 ) -> Camera:
     """A (not yet connected) camera for ``spec``: a Camera (used as it is), ``"sim"``, a
-    camera index (int or a string of digits) or device path, or a video file path.
+    camera index (int or a string of digits) or device path, a dataset file (``.h5``,
+    ``.hdf5``: its rows replayed, :class:`~beadsight.devices.replay.DatasetCamera`), or a
+    video file path.
 
-    image_size: the simulator's frame size (the model's). fps: the simulator's rate
-    (default 30), or the rate asked of a camera (a video file plays at its own rate).
-    loop: restart a video (or the simulator's session) at its end. seed: the
+    image_size: the simulator's frame size (the model's; a replayed dataset's frames are
+    resized to it). fps: the simulator's rate (default 30), a replayed dataset's (default:
+    the file's), or the rate asked of a camera (a video file plays at its own rate).
+    loop: restart a video or dataset (or the simulator's session) at its end. seed: the
     simulator's. any_size: accept any camera resolution (when a custom preprocessing is
     given) instead of requiring the reference camera's 1280x1024. drift: the simulator's
     drift (:func:`beadsight.sim.drift.parse_drift` text); refused for other sources.
     """
     from beadsight.devices.opencv import OpenCVCamera, is_device_path
+    from beadsight.devices.replay import DatasetCamera, is_dataset_path
 
     if not isinstance(spec, (int, str, os.PathLike)):
         if not isinstance(spec, Camera):
@@ -74,6 +78,8 @@ def open_camera(
         if any_size:
             mode.update(width=None, height=None)
         return OpenCVCamera(text, **mode)
+    if is_dataset_path(text):
+        return DatasetCamera(text, image_size, fps, loop=loop)
     return OpenCVCamera(
         text, width=None, height=None, realtime=True, loop=loop, name=f"video {Path(text)}"
     )

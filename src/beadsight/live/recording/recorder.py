@@ -23,6 +23,7 @@ button share, whatever the format (HDF5 readings file, MCAP).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 from collections.abc import Callable
@@ -113,8 +114,11 @@ class Recorder:
                     break
                 if item is not None:
                     update, status = item
+                    # recorded under the frame's index in the source (a replayed
+                    # dataset's row), not the predictor's count of frames it was given
+                    reading = dataclasses.replace(update.reading, frame_index=update.source_index)
                     self.writer.append(
-                        update.reading,
+                        reading,
                         reference_force_n=update.reference_force_n,
                         latency_s=update.latency_s,
                         health=self._health(update, status),
