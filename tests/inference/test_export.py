@@ -187,6 +187,8 @@ def test_cli_bench_live_json(checkpoint, tmp_path, capsys):
             "60",
             "--cache-dir",
             str(tmp_path / "cache"),
+            "--precision",  # auto among the fp32 runtimes: int8's quantisation and bf16 are
+            "fp32",  # timed by test_int8 and test_select
         ]
     )
     assert code == 0

@@ -5,8 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import subprocess
-import sys
 import time
 import urllib.request
 from dataclasses import replace
@@ -14,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.cli import run_beadsight
 from helpers.live import (
     BACKEND,
     SPAN,
@@ -153,18 +152,8 @@ class _Reading:
 def test_cli_live_output_on_a_full_disk_exits_non_zero(model, full_disk, tmp_path):
     checkpoint = model.save(tmp_path / "tiny.pt")
     out = full_disk / "readings.h5"
-    command = [
-        sys.executable,
-        "-m",
-        "beadsight",
-        *live_sim_args(checkpoint),
-        "--output",
-        str(out),
-        "--duration",
-        "60",
-    ]
     start = time.monotonic()
-    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    done = run_beadsight(*live_sim_args(checkpoint), "--output", out, "--duration", "60")
     assert done.returncode == 1, (done.stdout, done.stderr)
     assert time.monotonic() - start < 40  # stopped by the failure, not by --duration
     err = done.stderr.strip().splitlines()[-1]

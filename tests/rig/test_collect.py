@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -14,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.cli import beadsight_ok
 
 from beadsight.cli import main
 from beadsight.config import ConfigError
@@ -439,69 +439,29 @@ def test_cli_collect_argument_errors(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_end_to_end_collect_process_train_evaluate(tmp_path):
-    """collect --virtual -> process -> train -> evaluate, all through the real CLI."""
+    """collect --virtual -> process -> train -> evaluate, all through the real CLI (in this
+    process: the child-process side of the CLI is tested by the Ctrl-C and disk-full tests)."""
     raw, data, runs = tmp_path / "raw", tmp_path / "d.h5", tmp_path / "runs"
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-
-    def run(*args: str) -> str:
-        res = subprocess.run(
-            [sys.executable, "-m", "beadsight", *args],
-            capture_output=True,
-            text=True,
-            timeout=600,
-            env=env,
-        )
-        assert res.returncode == 0, f"{args[0]} failed:\n{res.stdout}\n{res.stderr[-3000:]}"
-        return res.stdout
-
     # 3x real time (90 fps of host time): at 8x a loaded 2-core machine drops so many frames
     # that no training window of consecutive frames ends in contact
-    run(*CLI[3:], "--presses", "5", "--image-size", "64", "--time-scale", "3", "--out", str(raw))
-    run(
-        "process",
-        str(raw),
-        "--out",
-        str(data),
-        "--preprocess",
-        "none",
-        "--image-size",
-        "64",
-        "--no-progress",
+    beadsight_ok(
+        *CLI[3:], "--presses", "5", "--image-size", "64", "--time-scale", "3", "--out", raw
+    )
+    beadsight_ok(
+        "process", raw, "--out", data, "--preprocess", "none", "--image-size", "64", "--no-progress"
     )
     with open_dataset(data) as ds:
         assert ds.num_presses == 5
-    run(
-        "train",
-        "--data",
-        str(data),
-        "--out",
-        str(runs),
-        "--steps",
-        "2",
-        "--width",
-        "8",
-        "--batch-size",
-        "4",
-        "--frames",
-        "5",
-        "--threads",
-        "1",
-        "--no-progress",
+    beadsight_ok(
+        *("train", "--data", data, "--out", runs, "--steps", "2", "--width", "8"),
+        *("--batch-size", "4", "--frames", "5", "--threads", "1", "--no-progress"),
     )
     checkpoints = sorted(runs.rglob("*.pt"))
     assert checkpoints, f"no checkpoint under {runs}"
     best = next((p for p in checkpoints if p.name == "best.pt"), checkpoints[-1])
-    out = run(
-        "evaluate",
-        "--checkpoint",
-        str(best),
-        "--data",
-        str(data),
-        "--split",
-        "all",
-        "--out",
-        str(tmp_path / "eval"),
-        "--no-plots",
+    out = beadsight_ok(
+        *("evaluate", "--checkpoint", best, "--data", data, "--split", "all"),
+        *("--out", tmp_path / "eval", "--no-plots", "--max-frames", "16"),
     )
     metrics = json.loads(next((tmp_path / "eval").rglob("metrics.json")).read_text())
     assert "mae_kpa" in metrics, out

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers.cli import run_beadsight
 from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight import load_checkpoint
@@ -376,11 +377,9 @@ def test_resume_after_sigkill_continues_the_same_run(make_dataset, tmp_path):
     assert step >= 3 and _optimizer_steps(killed) == {step}
     split_before = json.loads((run / "split.json").read_text())
 
-    result = subprocess.run(
-        _beadsight("--out", run, "--resume", "--steps", step + 3, "--threads", 1, "--no-progress"),
-        capture_output=True,
-        text=True,
-        timeout=300,
+    # the resumed run needs no child process of its own: the killed one was the point
+    result = run_beadsight(
+        "train", "--out", run, "--resume", "--steps", step + 3, "--threads", 1, "--no-progress"
     )
     assert result.returncode == 0, result.stderr
     final = read_checkpoint_file(run / "last.pt")

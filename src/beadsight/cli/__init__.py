@@ -30,6 +30,7 @@ from beadsight.cli.options import check_numbers
 AREAS = (
     "data",
     "train",
+    "calibrate",
     "evaluate",
     "sim",
     "rig",

@@ -49,6 +49,9 @@ class Number:
         return value
 
 
+MINUTES = Number(float, positive=True, high=MAX_BUDGET_MIN)  # budgets and intervals, minutes
+
+
 def check_numbers(parser: argparse.ArgumentParser) -> None:
     """Give every int or float option of ``parser`` and its subcommands the default
     :class:`Number` check (finite, 0 .. :data:`MAX_FLAG_VALUE`)."""

@@ -1,9 +1,9 @@
 """The collection's capture thread: every camera frame and scale reading into the raw recording.
 
-A :class:`Recorder` runs on its own thread (a :class:`~beadsight.devices.reader.ReaderThread`)
+A :class:`CaptureRecorder` runs on its own thread (a :class:`~beadsight.devices.reader.ReaderThread`)
 while the main thread drives the printer: it takes each frame in capture order with
 :meth:`~beadsight.devices.Camera.read` (never skipping one) and drains the scale between
-frames. It never raises: the first failure is kept in :attr:`Recorder.failure` as
+frames. It never raises: the first failure is kept in :attr:`CaptureRecorder.failure` as
 ``(status, message)`` for the session to stop on.
 """
 
@@ -28,7 +28,7 @@ CAMERA_READ_TIMEOUT_S = 0.5  # wait this long for a frame, then check for stop
 RECORDER_JOIN_S = 5.0  # stop(): how long to wait for the thread
 
 
-class Recorder:
+class CaptureRecorder:
     """Background thread: every camera frame and scale reading into ``writer``."""
 
     def __init__(self, writer: RecordingWriter, camera: Camera, scale: Scale):

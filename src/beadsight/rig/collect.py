@@ -6,7 +6,7 @@
 :class:`~beadsight.rig.plan.PressPlan`, and writes a raw recording
 (:class:`beadsight.data.recording.RecordingWriter`) incrementally:
 
-* a :class:`~beadsight.rig.capture.Recorder` thread takes every camera frame and every
+* a :class:`~beadsight.rig.capture.CaptureRecorder` thread takes every camera frame and every
   scale reading as they come;
 * the main thread drives the printer through the plan
   (:class:`~beadsight.rig.session.PressSession`), checking the force between steps, and
@@ -38,7 +38,7 @@ from beadsight.config import SensorGeometry
 from beadsight.data.recording import RecordingError, RecordingWriter, read_events, read_session
 from beadsight.devices.base import Camera, DeviceError, Printer, SafetyError, Scale
 from beadsight.devices.envelope import SafetyEnvelope
-from beadsight.rig.capture import Recorder
+from beadsight.rig.capture import CaptureRecorder
 from beadsight.rig.config import FORCE_LIMIT_N, SCALE_TIMEOUT_S, DeviceSpec, VirtualRigSpec
 from beadsight.rig.plan import PATTERNS, PressPlan, PressTarget, check_plan, envelope_for
 from beadsight.rig.session import ForceSafety, PressSession, SessionStop
@@ -140,7 +140,7 @@ def collect(
         chunk_frames=chunk_frames,
         resume=resume,
     )
-    recorder = Recorder(writer, camera, scale)
+    recorder = CaptureRecorder(writer, camera, scale)
     session = PressSession(printer, scale, writer, recorder, plan, safety, stop_event)
     writer.log_event(
         "session_start", resume=resume, presses_total=len(targets), presses_remaining=len(remaining)
@@ -268,7 +268,7 @@ def _emergency_stop(printer: Printer) -> None:
 
 def _close_writer(
     writer: RecordingWriter,
-    recorder: Recorder,
+    recorder: CaptureRecorder,
     status: str,
     message: str,
     done: set[int],

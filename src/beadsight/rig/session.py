@@ -7,7 +7,7 @@ goes in ``descend_step_mm`` steps and the dwell in short slices, so the force is
 between them (near the limit, with a reading taken after the step ended): above the
 limit the press is aborted and the finger lifted at once (:class:`ForceSafety`). A
 scale that goes silent stops the session (the check would be blind), and so does a
-failure of the :class:`~beadsight.rig.capture.Recorder`. Every printer command is
+failure of the :class:`~beadsight.rig.capture.CaptureRecorder`. Every printer command is
 logged into the recording with the press it belongs to (``press = -1`` for homing and
 parking), and every press event (``press_start``, ``press_end``, ``press_abort``...).
 """
@@ -26,7 +26,7 @@ from tqdm import tqdm
 from beadsight.config import ConfigError
 from beadsight.data.recording import RecordingWriter
 from beadsight.devices.base import DeviceError, Printer, Scale
-from beadsight.rig.capture import Recorder
+from beadsight.rig.capture import CaptureRecorder
 from beadsight.rig.config import FORCE_LIMIT_N, ON_FORCE_LIMIT, SCALE_TIMEOUT_S
 from beadsight.rig.plan import PressPlan, PressTarget
 
@@ -89,7 +89,7 @@ class PressSession:
     printer: Printer
     scale: Scale
     writer: RecordingWriter
-    recorder: Recorder
+    recorder: CaptureRecorder
     plan: PressPlan
     safety: ForceSafety
     stop_event: threading.Event | None = None
