@@ -67,3 +67,39 @@ def test_steady_press_judges_the_held_frames_and_counts_rests_under_load():
     assert result.seconds == pytest.approx(10 - 1.5, abs=0.1)
     assert steady.judge(rows, [1001.3, 1003.8]).rests_while_loaded == 2  # t = 5.2 s, 15.2 s
     assert steady.judge(rows, [1003.8 + 8 / FPS / 4]).rests_while_loaded == 0  # t = 15.47 s
+
+
+def test_train_speed_compares_variants_of_the_real_step(monkeypatch):
+    speed = benchmark("train_speed")
+    monkeypatch.setattr(speed, "STORE_FRAMES", 40)
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "train_speed.py",
+            "--size",
+            "16",
+            "--widths",
+            "4",
+            "--batch",
+            "2",
+            "--rounds",
+            "2",
+            "--steps",
+            "1",
+            "--warmup",
+            "1",
+            "--variants",
+            "main",
+            "t1+now",
+        ],
+    )
+    args = speed.parse_args()
+    rows = speed.run_variants(args, speed.torch.device("cpu"))
+    assert [(r["width"], r["variant"]) for r in rows] == [(4, "main"), (4, "t1+now")]
+    assert rows[0]["speedup"] == 1.0 and rows[1]["threads"] == 1
+    for r in rows:
+        assert r["samples_per_s"] > 0 and len(r["samples_per_s_rounds"]) == 2
+        assert r["cpu_ms_per_sample"] > 0
+    with pytest.raises(SystemExit, match="unknown lever"):
+        speed.Variant.parse("now+nope")
