@@ -15,9 +15,12 @@ A variant is levers joined by ``+`` (``main`` alone: none of them):
 * ``gn``: the norms as :class:`beadsight.model.InstanceNorm` (group norm, one group per
   channel; the same statistics);
 * ``up``: the 1x1 up-conv before the upsampling (:class:`beadsight.model.UpBlock`);
-* ``now``: the U-Net as this checkout builds it (``gn`` and ``up``) and the precision
-  ``train`` / ``calibrate`` resolve here (:func:`beadsight.train.config.resolve_precision`);
-* ``t1`` / ``t2`` / ...: ``torch.set_num_threads(N)`` during its steps;
+* ``auto``: the thread count chosen as the trainer chooses it
+  (:func:`beadsight.train.threads.training_threads`: the faster of torch's default and 1,
+  timed again every 2 minutes; its first probe is part of the warm-up, so the table shows
+  the steady state);
+* ``now``: what ``train`` / ``calibrate`` run now: ``gn``, ``up`` and ``auto``;
+* ``t1`` / ``t2`` / ...: ``torch.set_num_threads(N)`` during its steps (instead of ``auto``);
 * ``cl``: channels-last memory format (model and input);
 * ``fused``: fused AdamW;
 * ``compile``: ``torch.compile`` of the U-Net (the compile is in ``warmup_s``);
@@ -34,11 +37,13 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import statistics
 import sys
 import time
 import types
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,10 +56,11 @@ from beadsight.data.rest import REST_FRAMES
 from beadsight.inference.machine import cpu_summary
 from beadsight.model import UpBlock
 from beadsight.train.step import optimizer_step
+from beadsight.train.threads import PROBE_STEPS, ThreadTuner, training_threads
 from beadsight.train.windows import DeviceFrames, DeviceWindows, WindowLabels, WindowLoader
 
 DTYPES = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}
-LEVERS = ("main", "now", "gn", "up", "cl", "fused", "compile", "bf16")
+LEVERS = ("main", "now", "gn", "up", "auto", "cl", "fused", "compile", "bf16")
 STORE_FRAMES = 2000  # synthetic frames the loader gathers windows from
 NOISE_STD = 0.05  # the recipes' input noise
 
@@ -72,6 +78,7 @@ class Variant:
     threads: int | None = None
     gn: bool = False
     up: bool = False
+    auto: bool = False
     cl: bool = False
     fused: bool = False
     compile: bool = False
@@ -86,7 +93,7 @@ class Variant:
             elif lever not in LEVERS:
                 raise SystemExit(f"unknown lever {lever!r} in {name!r}; levers: {LEVERS}, tN")
             elif lever == "now":
-                kw.update(gn=True, up=True)
+                kw.update(gn=True, up=True, auto=True)
             elif lever != "main":
                 kw[lever] = True
         return cls(name, **kw)
@@ -212,30 +219,33 @@ class Runner:
 
     def __init__(self, args, device: torch.device, variant: Variant, width: int):
         self.args, self.device, self.variant = args, device, variant
-        self.threads = variant.threads or torch.get_num_threads()
+        default = torch.get_num_threads()
+        if variant.auto and not variant.threads:  # as the trainer chooses
+            self.tuner = training_threads(None, device, 1)
+        else:
+            self.tuner = ThreadTuner([variant.threads or default])
+        torch.set_num_threads(default)
         args_w = argparse.Namespace(**{**vars(args), "width": width})
         with self.threaded():
             self.step = make_step(args_w, device, "fp32", variant)
             self.loader = make_loader(args_w, device)
             self.epoch, self.batches = 0, iter(())
+            self.threads_used: list[int] = []
             t0 = time.perf_counter()
-            self.run(args.warmup)  # the compile, if any, happens here
+            # the compile, if any, and the thread tuner's first probe happen here
+            self.run(args.warmup + (PROBE_STEPS + 1) * (len(self.tuner.choices) - 1) * 2)
             self.warmup_s = time.perf_counter() - t0
         self.wall: list[float] = []
         self.cpu: list[float] = []
 
-    def threaded(self):
+    @contextlib.contextmanager
+    def threaded(self) -> Iterator[None]:
         default = torch.get_num_threads()
-        runner = self
-
-        class _Threads:
-            def __enter__(self):
-                torch.set_num_threads(runner.threads)
-
-            def __exit__(self, *exc):
-                torch.set_num_threads(default)
-
-        return _Threads()
+        torch.set_num_threads(self.tuner.threads)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(default)
 
     def _next(self):
         try:
@@ -249,7 +259,10 @@ class Runner:
     def run(self, steps: int) -> None:
         loss = None
         for _ in range(steps):
-            loss = self.step(*self._next())
+            batch = self._next()
+            with self.tuner.timed():
+                self.threads_used.append(torch.get_num_threads())
+                loss = self.step(*batch)
         if loss is not None:
             loss.item()
         sync(self.device)
@@ -267,7 +280,7 @@ class Runner:
             "samples_per_s": n / statistics.median(self.wall),
             "samples_per_s_rounds": [round(n / w, 2) for w in self.wall],
             "cpu_ms_per_sample": 1e3 * statistics.median(self.cpu) / n,
-            "threads": self.threads,
+            "threads": sorted(set(self.threads_used[-self.args.steps * self.args.rounds :])),
             "warmup_s": round(self.warmup_s, 2),
         }
 
