@@ -3,13 +3,13 @@
 torch's intra-op threads wait for each other at every operation by spinning. On a machine
 whose cores are also busy with other work, a thread that lost its core holds the others
 up, and a step can take several times longer at torch's default thread count than at one
-thread (``benchmarks/train_speed.py --variants main t1+main``: 2.4 against 12 samples/s
-at 64 px, width 16, on a 2-core CPU under a load of ~9). On an idle machine more threads
-are faster. So with ``threads`` unset, a CPU run times its own steps: a few at each
+thread (``benchmarks/train_speed.py --variants main t1+main``: 2.4 against 8.6 samples/s
+at 64 px, width 16, on a 2-core CPU under a load of ~7). On an idle machine more threads
+should be faster. So with ``threads`` unset, a CPU run times its own steps: a few at each
 candidate count (torch's default, and 1), keeps the faster, and times them again every
 :data:`REPROBE_S`, as the machine's load changes. The probing steps are ordinary training
-steps; at most one in :data:`PROBE_STEPS` + 1 of each probe runs at a thread count that
-is not the faster.
+steps: each probe runs :data:`PROBE_STEPS` + 1 of them at every candidate count, so about
+that many steps in each :data:`REPROBE_S` run at the slower count.
 """
 
 from __future__ import annotations
