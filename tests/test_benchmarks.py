@@ -113,3 +113,41 @@ def test_live_offline_scores_both_rows_on_a_simulated_dataset(tmp_path):
     assert rows["offline"]["mae_kpa"] == offline["mae_kpa"]
     assert rows["offline"]["frames"] == offline["frames"]
     assert figures["offline_backend"] == figures["live_backend"] == "torch/fp32"
+
+
+def test_train_speed_compares_variants_of_the_real_step(monkeypatch):
+    speed = benchmark("train_speed")
+    monkeypatch.setattr(speed, "STORE_FRAMES", 40)
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "train_speed.py",
+            "--size",
+            "16",
+            "--widths",
+            "4",
+            "--batch",
+            "2",
+            "--rounds",
+            "2",
+            "--steps",
+            "1",
+            "--warmup",
+            "1",
+            "--variants",
+            "main",
+            "t1+now",
+            "now",
+        ],
+    )
+    args = speed.parse_args()
+    rows = speed.run_variants(args, speed.torch.device("cpu"))
+    assert [r["variant"] for r in rows] == ["main", "t1+now", "now"]
+    assert rows[0]["speedup"] == 1.0 and rows[1]["threads"] == [1]
+    assert set(rows[2]["threads"]) <= {1, speed.torch.get_num_threads()}  # the tuner's choice
+    for r in rows:
+        assert r["width"] == 4 and r["samples_per_s"] > 0 and len(r["samples_per_s_rounds"]) == 2
+        assert r["cpu_ms_per_sample"] > 0
+    with pytest.raises(SystemExit, match="unknown lever"):
+        speed.Variant.parse("now+nope")

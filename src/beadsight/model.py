@@ -23,6 +23,19 @@ from torch import nn
 from beadsight.config import ModelConfig
 
 
+class InstanceNorm(nn.InstanceNorm2d):
+    """``nn.InstanceNorm2d`` without affine parameters or running statistics, computed as a
+    group norm with one group per channel: the same statistics (mean and biased variance
+    of each sample's channel, ``eps`` 1e-5), about twice as fast on CPUs in training and
+    inference (``benchmarks/train_speed.py``). It has no state_dict entries, like
+    ``nn.InstanceNorm2d``, and exports to ONNX as InstanceNormalization, as that does."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if torch.onnx.is_in_onnx_export():
+            return super().forward(x)
+        return F.group_norm(x, self.num_features, eps=self.eps)
+
+
 class ConvBlock(nn.Module):
     """conv3x3 -> InstanceNorm -> ELU -> Dropout, twice."""
 
@@ -30,11 +43,11 @@ class ConvBlock(nn.Module):
         super().__init__()
         self.layer = nn.Sequential(
             nn.Conv2d(c_in, c_out, 3, padding=1),  # layer.0
-            nn.InstanceNorm2d(c_out),
+            InstanceNorm(c_out),
             nn.ELU(),
             nn.Dropout(dropout),
             nn.Conv2d(c_out, c_out, 3, padding=1),  # layer.4
-            nn.InstanceNorm2d(c_out),
+            InstanceNorm(c_out),
             nn.ELU(),
             nn.Dropout(dropout),
         )
@@ -55,14 +68,21 @@ class DownBlock(nn.Module):
 
 
 class UpBlock(nn.Module):
-    """Nearest x2 upsampling, conv (C -> C/2), then concatenate [up, skip]."""
+    """Nearest x2 upsampling, conv (C -> C/2), then concatenate [up, skip].
+
+    A 1x1 conv commutes with nearest upsampling (each output pixel is a copy of one input
+    pixel, and the conv maps each pixel alone), so with ``kernel`` 1 the conv runs first,
+    on a quarter of the pixels, and the upsampling copies half the channels."""
 
     def __init__(self, c_in: int, kernel: int):
         super().__init__()
         self.Up = nn.Conv2d(c_in, c_in // 2, kernel, padding=kernel // 2)
 
     def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
-        up = self.Up(F.interpolate(x, scale_factor=2.0, mode="nearest"))  # (B, C/2, 2H, 2W)
+        if self.Up.kernel_size == (1, 1):
+            up = F.interpolate(self.Up(x), scale_factor=2.0, mode="nearest")  # (B, C/2, 2H, 2W)
+        else:
+            up = self.Up(F.interpolate(x, scale_factor=2.0, mode="nearest"))  # (B, C/2, 2H, 2W)
         return torch.cat([up, skip], dim=1)  # (B, C, 2H, 2W)
 
 

@@ -67,7 +67,12 @@ TRAIN_FLAGS = (
     ("split", "fractions of presses per split", {"nargs": 3, "metavar": ("TRAIN", "VAL", "TEST")}),
     ("loader", "auto, host (DataLoader workers) or device (frames on the device)"),
     ("num_workers", "DataLoader workers in host loader mode"),
-    ("threads", "torch CPU threads (default: torch's choice)", {"type": int}),
+    (
+        "threads",
+        "torch CPU threads (default: on a CPU, the faster of torch's default and 1, timed"
+        " on the run's own steps)",
+        {"type": int},
+    ),
     ("log_every_steps", "a metrics.jsonl line every N steps"),
     ("checkpoint_every_steps", "save last.pt every N steps"),
     ("checkpoint_every_min", "save last.pt at least every M minutes"),

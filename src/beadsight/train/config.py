@@ -111,7 +111,7 @@ class TrainConfig(_Serializable):
     resume: bool = False  # continue the run in ``out`` from its last.pt
     loader: str = "auto"  # auto | host (DataLoader workers) | device (frames on the device)
     num_workers: int = 2  # DataLoader workers in host loader mode
-    threads: int | None = None  # torch CPU threads (None: torch's default)
+    threads: int | None = None  # torch CPU threads (None: the faster of torch's default and 1)
     log_every_steps: int = 50  # a metrics.jsonl line every this many steps
     checkpoint_every_steps: int = 1000  # also save last.pt every this many steps
     checkpoint_every_min: float = 10.0  # ... and at least this often (minutes)

@@ -42,6 +42,7 @@ METRIC_KEYS = (
     "val_loss",
     "val_mae_kpa",
     "samples_per_s",
+    "threads",  # CPU threads of the steps (train/threads.py)
     "lr",
     "time_s",
     "wall_time",

@@ -64,6 +64,7 @@ from beadsight.train.prepare import (
 )
 from beadsight.train.run import CONFIG_FILE, SPLIT_FILE, RunFolder
 from beadsight.train.step import autocast, model_inputs, optimizer_step
+from beadsight.train.threads import training_threads
 from beadsight.train.windows import (
     DeviceFrames,
     DeviceWindows,
@@ -96,8 +97,7 @@ class Trainer:
     # --- setup ---
     def setup(self) -> None:
         config = self.config
-        if config.threads:
-            torch.set_num_threads(config.threads)
+        self.tuner = training_threads(config.threads, self.device, self.dist.world)
         self.run.check(config.resume)
         if self.dist.is_main and config.resume:
             self.run.remove_stale_temps()
@@ -291,18 +291,19 @@ class Trainer:
         return autocast(self.device, self.autocast_dtype)
 
     def train_step(self, frames: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-        return optimizer_step(
-            self.module,
-            self.ddp,
-            self.optimizer,
-            frames,
-            targets,
-            output_scale_kpa=self.scale,
-            noise_std=self.config.noise_std,
-            color_jitter=self.config.color_jitter,
-            autocast_dtype=self.autocast_dtype,
-            scaler=self.scaler,
-        )
+        with self.tuner.timed():  # CPU threads chosen by the steps' times
+            return optimizer_step(
+                self.module,
+                self.ddp,
+                self.optimizer,
+                frames,
+                targets,
+                output_scale_kpa=self.scale,
+                noise_std=self.config.noise_std,
+                color_jitter=self.config.color_jitter,
+                autocast_dtype=self.autocast_dtype,
+                scaler=self.scaler,
+            )
 
     @torch.no_grad()
     def validate(self) -> dict[str, float] | None:
@@ -346,6 +347,10 @@ class Trainer:
             )
             logger.debug("metrics %s", line)
 
+    def _new_interval(self) -> dict[str, Any]:
+        """The training loss summed since the last log, its steps and when it began."""
+        return {"loss_sum": torch.zeros((), device=self.device), "steps": 0, "t0": time.monotonic()}
+
     def _flush_interval(self) -> tuple[float | None, bool]:
         """Log the mean training loss since the last log (over all ranks); returns it and
         whether a timed checkpoint is due (agreed by all ranks)."""
@@ -368,14 +373,11 @@ class Trainer:
             )
         seconds = time.monotonic() - iv["t0"]
         samples = iv["steps"] * self.config.batch_size
-        self._log(event="train", train_loss=loss, samples_per_s=samples / max(seconds, 1e-9))
+        rate, threads = samples / max(seconds, 1e-9), torch.get_num_threads()
+        self._log(event="train", train_loss=loss, samples_per_s=rate, threads=threads)
         self._epoch_loss[0] += loss * iv["steps"]
         self._epoch_loss[1] += iv["steps"]
-        self._interval = {
-            "loss_sum": torch.zeros((), device=self.device),
-            "steps": 0,
-            "t0": time.monotonic(),
-        }
+        self._interval = self._new_interval()
         return loss, packed[1] > 0
 
     def _after_step(self, bar: tqdm) -> None:
@@ -429,11 +431,7 @@ class Trainer:
         total = config.steps if config.steps is not None else config.epochs * spe
         self.clock = clock = Clock(config, self.elapsed_s)
         self._last_save = time.monotonic()
-        self._interval = {
-            "loss_sum": torch.zeros((), device=self.device),
-            "steps": 0,
-            "t0": time.monotonic(),
-        }
+        self._interval = self._new_interval()
         self._epoch_loss = [0.0, 0]
         if self.step >= total or clock.exhausted():
             logger.info("run %s already reached step %d of %d", self.run.path, self.step, total)
@@ -474,6 +472,8 @@ class Trainer:
         return self.dist.any(self.clock.exhausted(), self.device)
 
     def close(self) -> None:
+        if getattr(self, "tuner", None) is not None:
+            self.tuner.restore()
         for loader in (getattr(self, "train_loader", None), getattr(self, "val_loader", None)):
             if loader is not None and isinstance(loader.source, WindowDataset):
                 loader.source.close()
