@@ -9,12 +9,34 @@ import signal
 import sys
 from pathlib import Path
 
-import pytest
-import torch
-from helpers.synthetic_presses import write_synthetic_dataset
 
-from beadsight.checkpoint import CheckpointMeta, PressureModel
-from beadsight.config import ModelConfig, SensorGeometry
+def _share_cores_among_workers() -> int | None:
+    """Under pytest-xdist, each worker's runtimes get its share of the cores (one thread each
+    with one worker per core), through OMP_NUM_THREADS: torch reads it, and so does
+    ``beadsight.inference.machine.default_threads`` for ONNX Runtime and OpenVINO; the CLI
+    children a test starts inherit it. Without it every worker's runtimes spin on every core:
+    with 2 workers on 2 cores the OpenVINO tests took 10-40x longer. Set before torch and
+    numpy load; a limit the caller set is kept. Returns the share, or None."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if "PYTEST_XDIST_WORKER" not in os.environ or workers < 2 or "OMP_NUM_THREADS" in os.environ:
+        return None
+    share = max(1, len(os.sched_getaffinity(0)) // workers)
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(name, str(share))
+    return share
+
+
+WORKER_THREADS = _share_cores_among_workers()
+
+import pytest  # noqa: E402 - after the thread limits, which torch and numpy read at import
+import torch  # noqa: E402
+from helpers.synthetic_presses import write_synthetic_dataset  # noqa: E402
+
+from beadsight.checkpoint import CheckpointMeta, PressureModel  # noqa: E402
+from beadsight.config import ModelConfig, SensorGeometry  # noqa: E402
+
+if WORKER_THREADS:
+    torch.set_num_threads(WORKER_THREADS)  # in case something started torch's pool before
 
 TINY = SensorGeometry(image_size_px=64)
 
