@@ -15,8 +15,9 @@ def _share_cores_among_workers() -> int | None:
     with one worker per core), through OMP_NUM_THREADS: torch reads it, and so does
     ``beadsight.inference.machine.default_threads`` for ONNX Runtime and OpenVINO; the CLI
     children a test starts inherit it. Without it every worker's runtimes spin on every core:
-    with 2 workers on 2 cores the OpenVINO tests took 10-40x longer. Set before torch and
-    numpy load; a limit the caller set is kept. Returns the share, or None."""
+    with 2 workers on 2 cores at a load of 5-6, tests/inference/test_int8.py took 236 s
+    instead of 53 s, test_select.py 112-207 s instead of 35 s. Set before torch and numpy
+    load; a limit the caller set is kept. Returns the share, or None."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if "PYTEST_XDIST_WORKER" not in os.environ or workers < 2 or "OMP_NUM_THREADS" in os.environ:
         return None
