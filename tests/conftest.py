@@ -9,12 +9,36 @@ import signal
 import sys
 from pathlib import Path
 
-import pytest
-import torch
-from helpers.synthetic_presses import write_synthetic_dataset
 
-from beadsight.checkpoint import CheckpointMeta, PressureModel
-from beadsight.config import ModelConfig, SensorGeometry
+def _share_cores_among_workers() -> int | None:
+    """Under pytest-xdist, each worker's runtimes get its share of the cores (one thread each
+    with one worker per core), through OMP_NUM_THREADS: torch reads it, and so does
+    ``beadsight.inference.machine.default_threads`` for ONNX Runtime and OpenVINO; the CLI
+    children a test starts inherit it. Without it every worker's runtimes spin on every core:
+    with 2 workers on 2 cores at a load of 5-6, tests/inference/test_int8.py took 236 s
+    instead of 53 s, test_select.py 112-207 s instead of 35 s. Set before torch and numpy
+    load; a limit the caller set is kept. Returns the share, or None."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if "PYTEST_XDIST_WORKER" not in os.environ or workers < 2 or "OMP_NUM_THREADS" in os.environ:
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    share = max(1, (cores or 1) // workers)
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(name, str(share))
+    return share
+
+
+WORKER_THREADS = _share_cores_among_workers()
+
+import pytest  # noqa: E402 - after the thread limits, which torch and numpy read at import
+import torch  # noqa: E402
+from helpers.synthetic_presses import write_synthetic_dataset  # noqa: E402
+
+from beadsight.checkpoint import CheckpointMeta, PressureModel  # noqa: E402
+from beadsight.config import ModelConfig, SensorGeometry  # noqa: E402
+
+if WORKER_THREADS:
+    torch.set_num_threads(WORKER_THREADS)  # in case something started torch's pool before
 
 TINY = SensorGeometry(image_size_px=64)
 

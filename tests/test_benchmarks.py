@@ -76,17 +76,12 @@ def test_steady_press_judges_the_held_frames_and_counts_rests_under_load():
 
 def test_live_offline_scores_both_rows_on_a_simulated_dataset(tmp_path):
     """End to end through the real CLI: simulate, evaluate, live replay, compare."""
+    from helpers.cli import beadsight_ok
     from helpers.live import tiny_model
 
     data = tmp_path / "sim.h5"
     simulate = ["simulate", "--presses", "2", "--image-size", "64", "--out", str(data)]
-    done = subprocess.run(
-        [sys.executable, "-m", "beadsight", *simulate, "--no-progress"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert done.returncode == 0, done.stderr
+    beadsight_ok(*simulate, "--no-progress")  # in this process; the benchmark gets its own
     checkpoint = tiny_model().save(tmp_path / "tiny.pt")
     command = [sys.executable, str(BENCHMARKS / "live_offline.py"), str(data)]
     command += ["--checkpoint", str(checkpoint), "--work", str(tmp_path / "work")]

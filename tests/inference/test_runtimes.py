@@ -8,6 +8,7 @@ import torch
 from helpers.inference import T, stream
 
 from beadsight.checkpoint import PressureModel
+from beadsight.inference.machine import default_threads, usable_cores
 from beadsight.inference.parity import PARITY_TOLERANCE, ParityError, check_parity, probe_window
 from beadsight.inference.predictor import PressurePredictor
 from beadsight.inference.runtimes import (
@@ -38,6 +39,27 @@ def test_openvino_bf16_runs_only_where_the_cpu_has_it(probe_model):
     else:
         with pytest.raises(BackendUnavailableError, match="this CPU has no native bf16"):
             build_backend(probe_model, "openvino", "bf16", cache_dir=None)
+
+
+def test_runtimes_not_told_threads_take_omp_num_threads(probe_model, monkeypatch):
+    """OMP_NUM_THREADS limits ONNX Runtime and OpenVINO as torch (capped by the usable cores);
+    unset or not a positive number, they take every usable core."""
+    cores = usable_cores()
+    for value, expected in (("1", 1), (str(cores + 8), cores), ("0", cores), ("x", cores)):
+        monkeypatch.setenv("OMP_NUM_THREADS", value)
+        assert default_threads() == expected, value
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert default_threads() == cores
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    openvino = build_backend(probe_model, "openvino", "fp32", cache_dir=None)
+    assert openvino.compiled.get_property("INFERENCE_NUM_THREADS") == 1
+    openvino.close()
+    onnx = build_backend(probe_model, "onnx", "fp32", cache_dir=None)
+    assert onnx.session.get_session_options().intra_op_num_threads == 1
+    onnx.close()
+    told = build_backend(probe_model, "openvino", "fp32", cache_dir=None, threads=2)
+    assert told.compiled.get_property("INFERENCE_NUM_THREADS") == 2  # an explicit count wins
+    told.close()
 
 
 @pytest.mark.parametrize("name, precision, module", CPU_BACKENDS)

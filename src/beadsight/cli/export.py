@@ -83,7 +83,12 @@ def _backend_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--precision", default="auto", choices=("auto", *PRECISIONS))
     p.add_argument("--device", default=None, help="torch device for torch/cuda (e.g. cuda:0)")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all usable)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="CPU threads (default: $OMP_NUM_THREADS, else every usable core)",
+    )
     p.add_argument(
         "--cache-dir",
         default="default",

@@ -20,12 +20,24 @@ def default_cache_dir() -> Path:
     return Path.home() / ".cache" / "beadsight"
 
 
-def default_threads() -> int:
+def usable_cores() -> int:
     """CPU cores this process may run on."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux
         return os.cpu_count() or 1
+
+
+def default_threads() -> int:
+    """Compute threads of a runtime not told how many: ``OMP_NUM_THREADS`` where set to a
+    positive number (torch reads it too, so one variable limits every runtime of a process and
+    of its children), at most the usable cores; else all usable cores."""
+    cores = usable_cores()
+    try:
+        limit = int(os.environ.get("OMP_NUM_THREADS", ""))
+    except ValueError:
+        return cores
+    return min(limit, cores) if limit > 0 else cores
 
 
 def importable(module: str) -> bool:
@@ -62,7 +74,7 @@ def cpu_flags() -> list[str]:
 def cpu_summary() -> str:
     """One line for benchmark output: CPU model, cores this process may use, and flags."""
     flags = " ".join(cpu_flags()) or "none of " + "/".join(PERFORMANCE_FLAGS[:3])
-    return f"CPU: {cpu_name()}; {default_threads()} cores available; flags: {flags}"
+    return f"CPU: {cpu_name()}; {usable_cores()} cores available; flags: {flags}"
 
 
 def machine_key() -> str:

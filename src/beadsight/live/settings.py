@@ -34,7 +34,7 @@ class LiveSettings:
     precision: str = "auto"  # auto | fp32 | bf16
     device: str | None = None  # torch device of the torch/compile/cuda backends
     exported_model: str | None = None  # an exported .onnx / OpenVINO .xml of the checkpoint
-    threads: int | None = None  # CPU threads of the backend (None: all this process may use)
+    threads: int | None = None  # backend CPU threads (None: $OMP_NUM_THREADS, else all cores)
     preprocess: str = "auto"  # auto | none | reference | reference-linear | lens .json
     source_fps: float | None = None  # simulator rate (None: 30) / rate asked of a camera
     loop: bool = False  # restart a video file at its end
