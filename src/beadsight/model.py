@@ -72,14 +72,17 @@ class UpBlock(nn.Module):
 
     A 1x1 conv commutes with nearest upsampling (each output pixel is a copy of one input
     pixel, and the conv maps each pixel alone), so with ``kernel`` 1 the conv runs first,
-    on a quarter of the pixels, and the upsampling copies half the channels."""
+    on a quarter of the pixels, and the upsampling copies half the channels. ONNX export
+    keeps the reference order: the INT8 quantization of the other order moved the CoP
+    error by +4 % on the metric gate's presses (``inference.int8``), the reference order
+    by 0 %."""
 
     def __init__(self, c_in: int, kernel: int):
         super().__init__()
         self.Up = nn.Conv2d(c_in, c_in // 2, kernel, padding=kernel // 2)
 
     def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
-        if self.Up.kernel_size == (1, 1):
+        if self.Up.kernel_size == (1, 1) and not torch.onnx.is_in_onnx_export():
             up = F.interpolate(self.Up(x), scale_factor=2.0, mode="nearest")  # (B, C/2, 2H, 2W)
         else:
             up = self.Up(F.interpolate(x, scale_factor=2.0, mode="nearest"))  # (B, C/2, 2H, 2W)

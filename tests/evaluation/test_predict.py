@@ -128,7 +128,9 @@ def test_cli_predict_video(tiny_model, tmp_path, capsys):
         assert f.attrs["input_kind"] == "video" and f.attrs["preprocess"] == "none"
         for end in (14, n - 1):
             expected = tiny_model.predict(decoded[end - 14 : end + 1])
-            np.testing.assert_allclose(f["pressure_kpa"][end], expected, rtol=1e-5, atol=1e-5)
+            # the CLI ran batches of 4, this one window: group norm sums in another order
+            # (1e-5 kPa apart); a window off by one frame differs by far more
+            np.testing.assert_allclose(f["pressure_kpa"][end], expected, rtol=1e-5, atol=1e-4)
 
 
 @pytest.mark.parametrize("preprocess", ["none", "auto"])
