@@ -2,13 +2,14 @@
 
 Live sensing reads any :class:`beadsight.devices.Camera` - the same camera classes that
 collection records from: :func:`open_camera` turns a ``--source`` (``"sim"``, a camera
-index or device path, a dataset file to replay, a video file) into one. The camera's reader thread keeps the
-frames with their capture timestamps (capture never waits for inference);
-:meth:`~beadsight.devices.Camera.async_read` hands the sensor every frame since its last
-read, so its temporal window stays consecutive. The camera's errors drive the sensor:
+index or device path, a dataset file to replay, a video file) into one. The camera's
+reader thread keeps the frames with their capture timestamps (capture never waits for
+inference); :meth:`~beadsight.devices.Camera.async_read` hands the sensor every frame since
+its last read, so its temporal window stays consecutive. The camera's errors drive the sensor:
 :class:`~beadsight.devices.CameraDisconnectedError` (a live camera was lost: reopen it
 with backoff), :class:`~beadsight.devices.CameraEndedError` (a video, a replayed dataset
-or the simulator ended), :class:`~beadsight.devices.DeviceTimeoutError` (no frame for a while).
+or the simulator ended), :class:`~beadsight.devices.DeviceTimeoutError` (no frame for a
+while).
 
 :func:`frame_converter` decides, from the first frame, how frames become the model's
 input: (S, S, 3) uint8 RGB.
