@@ -142,8 +142,8 @@ class BufferedCamera(DeviceContext):
     Subclasses implement ``_open() -> fps`` (open the source; fps in frames per *host*
     second), ``_grab() -> (image, reference_force_n[, file_index]) or None`` (None: the
     stream ended, after calling :meth:`_end`; ``file_index``: the frame's row in the file
-    the camera plays, :attr:`Frame.file_index`), ``_release()``, and may override ``_mode_hint()``,
-    ``_disconnect_hint()`` and ``_pace_delay_s()``. ``_grab`` is called once in
+    the camera plays, :attr:`Frame.file_index`), ``_release()``, and may override
+    ``_mode_hint()``, ``_disconnect_hint()`` and ``_pace_delay_s()``. ``_grab`` is called once in
     :meth:`connect` (to verify the frame size) and then on the reader thread.
 
     requested: (width, height) px to verify the frames against (None: any).
