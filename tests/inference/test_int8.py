@@ -17,8 +17,8 @@ from beadsight.checkpoint import load_checkpoint
 from beadsight.inference.int8 import (
     NNCF_DEFAULT,
     Int8Backend,
-    cached_metric_parity,
     calibration_windows,
+    gated_int8,
 )
 from beadsight.inference.metric_parity import (
     HELDOUT_PRESSES,
@@ -105,7 +105,9 @@ def test_int8_that_keeps_the_metrics_is_accepted_and_cached(sim_model, heldout, 
         again = Int8Backend(sim_model, cache_dir=tmp_path)
         assert again.quantized_path == backend.quantized_path
         np.testing.assert_array_equal(again.run_batch(heldout.inputs[:3]), out)
-        assert cached_metric_parity(again, sim_model).deltas == backend.parity.deltas
+        cached = gated_int8(sim_model, cache_dir=tmp_path)  # the verdict kept beside it
+        assert cached.parity.deltas == backend.parity.deltas
+        cached.close()
     finally:
         backend.close()
 
@@ -119,5 +121,6 @@ def test_auto_drops_an_int8_candidate_that_fails_the_gate(probe_model, tmp_path)
         assert chosen.describe() == "openvino/fp32"
         notes = {c.backend: c.note for c in chosen.selection}
         assert notes["int8"].startswith("rejected") and "all-zero map" in notes["int8"]
+        assert not list(tmp_path.glob("int8/*.xml"))  # refused before anything was quantized
     finally:
         chosen.close()

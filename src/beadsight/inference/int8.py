@@ -18,7 +18,8 @@ of the convolution work at the reference size) in fp32 to within 2 % on every me
 
 Whether the result may be used is decided on the paper's metrics, not pixel by pixel:
 :func:`beadsight.inference.metric_parity.metric_parity` (the ``int8`` runtime and auto
-selection both apply it; :func:`cached_metric_parity` keeps its result beside the model).
+selection both apply it through :func:`gated_int8`, which keeps the verdict beside the
+model and refuses a model whose fp32 metrics cannot vouch before quantizing it).
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ from beadsight.inference.metric_parity import (
     GATE_KEY,
     MetricParity,
     metric_parity,
+    require_meaningful,
+    require_metric_parity,
     simulated_presses,
 )
 from beadsight.inference.runtimes import OpenVinoBackend
@@ -110,6 +113,11 @@ def calibration_windows(model: PressureModel) -> np.ndarray:
         CALIBRATION_CONTACT_SHARE,
     )
     return presses.inputs
+
+
+def _model_key(model: PressureModel, windows: np.ndarray | None, recipe: QuantizationRecipe) -> str:
+    """Names a quantized model: the checkpoint, the machine, the calibration and recipe."""
+    return f"{model_fingerprint(model)[:24]}-{machine_key()}-{_calibration_key(windows, recipe)}"
 
 
 def _calibration_key(windows: np.ndarray | None, recipe: QuantizationRecipe) -> str:
@@ -187,8 +195,7 @@ class Int8Backend(OpenVinoBackend):
     ):
         self._calibration = calibration
         self.recipe = recipe
-        self.model_key = f"{model_fingerprint(model)[:24]}-{machine_key()}-"
-        self.model_key += _calibration_key(calibration, recipe)
+        self.model_key = _model_key(model, calibration, recipe)
         super().__init__(model, precision, None, cache_dir, threads)
 
     def _check_available(self) -> None:
@@ -219,24 +226,41 @@ class Int8Backend(OpenVinoBackend):
         self.cache_dir = Path(cache_dir) if cache_dir else None
 
 
-def cached_metric_parity(backend: Int8Backend, model: PressureModel) -> MetricParity:
-    """:func:`metric_parity` of ``backend``, kept in ``cache_dir/int8/<key>-parity-<gate>.json``
-    (the held-out presses are simulated and run through fp32 torch only once)."""
-    path = None
-    if backend.cache_dir is not None:
-        path = backend.cache_dir / "int8" / f"{backend.model_key}-parity-{GATE_KEY}.json"
-        try:
-            data = json.loads(path.read_text())
-            return MetricParity(
-                data["backend"],
-                data["reference"],
-                data["candidate"],
-                int(data["windows"]),
-                data["zero"],
-            )
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
-    parity = metric_parity(backend, model)
-    if path is not None:
-        atomic_write_json(path, parity.to_dict())
-    return parity
+def _read_parity(path: Path | None) -> MetricParity | None:
+    try:
+        data = json.loads(path.read_text())
+        return MetricParity(
+            data["backend"],
+            data["reference"],
+            data["candidate"],
+            int(data["windows"]),
+            data["zero"],
+        )
+    except (AttributeError, OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def gated_int8(
+    model: PressureModel, cache_dir: Path | None = None, threads: int | None = None
+) -> Int8Backend:
+    """The int8 runtime of ``model`` if it passes the metric gate, else
+    :class:`~beadsight.inference.metric_parity.MetricParityError` (the backend closed).
+
+    The verdict is kept in ``cache_dir/int8/<key>-parity-<gate>.json`` (the held-out
+    presses are simulated and run through fp32 torch once). A model whose fp32 metrics do
+    no better than an all-zero map is refused before anything is quantized."""
+    backend = None
+    key = f"{_model_key(model, None, ACCURATE)}-parity-{GATE_KEY}.json"
+    path = Path(cache_dir) / "int8" / key if cache_dir else None
+    parity = _read_parity(path)
+    if parity is None:
+        presses = simulated_presses(model)
+        reference = model.predict(presses.inputs, batch_size=1)
+        require_meaningful(model, presses, reference)
+        backend = Int8Backend(model, cache_dir=cache_dir, threads=threads)
+        parity = metric_parity(backend, model, presses, reference=reference)
+        if path is not None:
+            atomic_write_json(path, parity.to_dict())
+    backend = backend or Int8Backend(model, cache_dir=cache_dir, threads=threads)
+    require_metric_parity(backend, model, parity)
+    return backend

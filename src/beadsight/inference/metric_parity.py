@@ -223,6 +223,25 @@ def metric_parity(
     )
 
 
+def require_meaningful(
+    model: PressureModel, presses: SimulatedPresses, reference: np.ndarray
+) -> None:
+    """Raise :class:`MetricParityError` when fp32 torch's ``reference`` maps of ``presses``
+    do no better than an all-zero map: the metrics can then vouch for no runtime, so there
+    is nothing to quantize or run to learn it."""
+    scores = _scores(reference, presses, model.geometry)
+    zero = _scores(np.zeros_like(reference), presses, model.geometry)
+    fp32 = MetricParity("fp32 torch", scores, scores, len(presses.inputs), zero)
+    if not fp32.meaningful:
+        raise MetricParityError(
+            f"checkpoint {model.source}: fp32 torch does no better than an all-zero map on "
+            f"{len(presses.inputs)} held-out simulated windows (MAE {scores['mae_kpa']!s:.6} "
+            f"vs {zero['mae_kpa']!s:.6} kPa, force error {scores['force_error_pct']!s:.6} "
+            f"vs {zero['force_error_pct']!s:.6} %), so the paper's metrics cannot vouch "
+            "for a reduced-precision runtime; use an fp32 backend"
+        )
+
+
 def require_metric_parity(backend: Backend, model: PressureModel, parity: MetricParity) -> None:
     """Set ``backend.parity``; close it and raise :class:`MetricParityError` unless ok."""
     backend.parity = parity

@@ -42,9 +42,9 @@ from beadsight.inference.export_format import (
     check_exported_matches,
     model_fingerprint,
 )
-from beadsight.inference.int8 import Int8Backend, cached_metric_parity
+from beadsight.inference.int8 import Int8Backend, gated_int8
 from beadsight.inference.machine import default_cache_dir, importable, machine_key
-from beadsight.inference.metric_parity import require_metric_parity
+from beadsight.inference.metric_parity import MetricParityError
 from beadsight.inference.parity import (
     PARITY_TOLERANCE,
     check_parity,
@@ -196,18 +196,15 @@ class _Probe:
 def _try_candidate(model, name, precision, device, cache_dir, threads, probe: _Probe):
     """A parity-checked backend, or a string saying why it cannot be used."""
     try:
+        if name == "int8":  # judged on the paper's metrics, not pixel by pixel
+            return gated_int8(model, cache_dir, threads)
         backend = build_backend(model, name, precision, device, None, cache_dir, threads)
+    except MetricParityError as e:
+        log.info("auto: %s/%s rejected: %s", name, precision, e)
+        return f"rejected, {e}"
     except (BackendUnavailableError, ImportError, RuntimeError) as e:
         log.debug("auto: %s/%s unavailable: %s", name, precision, e)
         return f"unavailable ({e})"
-    if name == "int8":  # judged on the paper's metrics, not pixel by pixel
-        parity = cached_metric_parity(backend, model)
-        if not parity.ok:
-            backend.close()
-            log.info("auto: %s rejected: %s", backend.describe(), parity)
-            return f"rejected, {parity}"
-        backend.parity = parity
-        return backend
     tolerance = PARITY_TOLERANCE
     if precision != "fp32":  # probes cannot cover every input: demand a margin
         tolerance = replace(tolerance, fraction=tolerance.fraction * AUTO_REDUCED_PRECISION_MARGIN)
@@ -333,10 +330,10 @@ def create_backend(
         return select_backend(model, precision, device, cache, threads)
     _check_precision(precision)
     prec = ("fp32" if backend != "int8" else INT8) if precision == "auto" else precision
+    if check and backend == "int8" and prec == INT8:
+        return gated_int8(model, cache, threads)
     result = build_backend(model, backend, prec, device, None, cache, threads)
-    if check and backend == "int8":
-        require_metric_parity(result, model, cached_metric_parity(result, model))
-    elif check and not (backend == "torch" and prec == "fp32"):
+    if check and not (backend == "torch" and prec == "fp32"):
         require_parity(result, model)
     return result
 
