@@ -35,9 +35,9 @@ The last line is a JSON object (--json: the only line).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -58,12 +58,15 @@ LATE_PERIODS = 0.5  # a frame this many periods behind the replay's schedule cam
 
 
 def run(argv: list[str]) -> None:
-    """``python -m beadsight ARGV``; SystemExit with its output if it fails."""
-    done = subprocess.run(
-        [sys.executable, "-m", "beadsight", *argv], capture_output=True, text=True, check=False
-    )
-    if done.returncode != 0:
-        raise SystemExit(f"beadsight {' '.join(argv)} failed:\n{done.stdout}{done.stderr}")
+    """``beadsight ARGV`` in this process (torch is imported once for both commands);
+    SystemExit with what it printed if it fails."""
+    from beadsight.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    if code != 0:
+        raise SystemExit(f"beadsight {' '.join(argv)} failed:\n{out.getvalue()}{err.getvalue()}")
 
 
 def row(result: dict, valid: int) -> dict:
@@ -219,7 +222,7 @@ def measure(data: Path, checkpoint: Path, work: Path, backend: str | None = None
     }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     from beadsight.assets import shipped_model_path
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -232,7 +235,7 @@ def main() -> None:
         help="the runtime both run (default: each command's own: evaluate torch, live auto)",
     )
     p.add_argument("--json", action="store_true", help="print only the JSON object")
-    args = p.parse_args()
+    args = p.parse_args(argv)
     checkpoint = args.checkpoint or shipped_model_path()
     with tempfile.TemporaryDirectory(prefix="live_offline_") as tmp:
         work = args.work or Path(tmp)

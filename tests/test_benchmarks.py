@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -74,21 +73,20 @@ def test_steady_press_judges_the_held_frames_and_counts_rests_under_load():
     assert steady.judge(rows, [1003.8 + 8 / FPS / 4]).rests_while_loaded == 0  # t = 15.47 s
 
 
-def test_live_offline_scores_both_rows_on_a_simulated_dataset(tmp_path):
+def test_live_offline_scores_both_rows_on_a_simulated_dataset(tmp_path, capsys):
     """End to end through the real CLI: simulate, evaluate, live replay, compare."""
     from helpers.cli import beadsight_ok
     from helpers.live import tiny_model
 
     data = tmp_path / "sim.h5"
     simulate = ["simulate", "--presses", "2", "--image-size", "64", "--out", str(data)]
-    beadsight_ok(*simulate, "--no-progress")  # in this process; the benchmark gets its own
+    beadsight_ok(*simulate, "--no-progress")
     checkpoint = tiny_model().save(tmp_path / "tiny.pt")
-    command = [sys.executable, str(BENCHMARKS / "live_offline.py"), str(data)]
-    command += ["--checkpoint", str(checkpoint), "--work", str(tmp_path / "work")]
-    command += ["--backend", "torch"]  # live's auto would time every runtime first
-    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr
-    lines = done.stdout.strip().splitlines()
+    argv = [str(data), "--checkpoint", str(checkpoint), "--work", str(tmp_path / "work")]
+    argv += ["--backend", "torch"]  # live's auto would time every runtime first
+    capsys.readouterr()
+    benchmark("live_offline").main(argv)
+    lines = capsys.readouterr().out.strip().splitlines()
     assert lines[1].startswith("offline ") and lines[2].startswith("live ")  # both rows
     figures = json.loads(lines[-1])
     rows, why = figures["rows"], figures["why"]
