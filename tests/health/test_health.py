@@ -14,6 +14,8 @@ import pytest
 from beadsight.data.rest import REST_FRAMES, RestReference, average_rest
 from beadsight.health.checkup import drift_timeline
 from beadsight.health.monitor import SHIFT_STEP_MM, HealthMonitor, HealthSettings, judge
+from beadsight.health.rest import REST_GUARD_FRAMES
+from beadsight.health.stillness import STILL_FRAMES
 from beadsight.health.watch import SensorWatch
 from beadsight.inference.predictor import PressureReading
 from beadsight.sim.config import SimConfig
@@ -108,6 +110,42 @@ def test_a_stored_rest_waits_for_the_pouch_to_be_unloaded():
     report = watch.report
     assert report.state == "drifting" and report.reference == "file"  # 90 -> 100: +11 %
     assert report.figures["brightness_change_pct"] == pytest.approx(100 / 90 * 100 - 100)
+    watch.close()
+
+
+def test_a_requested_rest_replaces_a_stale_one_that_reads_as_a_load():
+    """A stale rest image (the pouch bumped) reads as a load that never ends, so the
+    unloaded rule never refreshes it; asked for, the next still frames are taken whatever
+    the readings and however recent the last rest reference, and only once."""
+    taken = []
+    watch = SensorWatch(SENSOR_MM, health=False, on_rest=taken.append)
+    watch.tracker.refresh_s = 1e9  # no refresh but the one asked for
+    frame = np.full((SIZE, SIZE, 3), 100, np.uint8)
+    settle = 2 * STILL_FRAMES + 1 + REST_FRAMES + REST_GUARD_FRAMES  # still again, then one
+    k = 0
+
+    def frames(n: int, force_n: float = 4.0, still: bool = True) -> None:
+        nonlocal k
+        for _ in range(n):
+            image = frame.copy()
+            if not still:  # a bright bar sweeping across: motion
+                image[:, (8 * k) % SIZE :][:, :16] = 230
+            watch.process(image, truth(force_n, k / FPS))
+            k += 1
+
+    frames(settle, force_n=0.0)
+    assert [r.origin for r in taken] == ["start-up"]
+    frames(60)  # 2 s still under the phantom load: no new rest reference
+    assert len(taken) == 1 and not watch.tracker.requested
+    watch.request_rest()
+    assert watch.tracker.requested
+    frames(10, still=False)  # moving frames are never a rest image, asked for or not
+    frames(settle)
+    assert [r.origin for r in taken] == ["start-up", "requested"] and watch.rest is taken[1]
+    np.testing.assert_array_equal(taken[1].image, frame)
+    assert not watch.tracker.requested
+    frames(90)  # the phantom load again: asked for once, taken once
+    assert len(taken) == 2
     watch.close()
 
 

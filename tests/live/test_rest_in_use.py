@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig
 from beadsight.data.rest import REST_FRAMES, with_rest
 from beadsight.devices.virtual.camera import SimCamera
+from beadsight.errors import ConfigError
 from beadsight.health.checkup import run_checkup
 from beadsight.live.sensor import WAITING_FOR_REST, LiveSensor
 from beadsight.sim.config import SimConfig
@@ -97,6 +99,36 @@ def test_a_stored_rest_serves_from_the_first_frame(quiet_model, tmp_path):
     assert again[0][0].source_index == quiet_model.span - 1  # a reading per window at once
     np.testing.assert_array_equal(again[0][1], sensor.watch.rest.image)
     assert WAITING_FOR_REST not in [m for _, m in log.changes]
+
+
+def test_retake_rest_takes_the_next_still_frames_and_the_readings_use_them(quiet_model):
+    sensor = LiveSensor(quiet_model, resting_camera(20.0), TORCH).open()
+    sensor.watch.tracker.refresh_s = 1e9  # no rest reference but the start-up one and ours
+    asked, used, done = [], [], threading.Event()
+
+    def on_update(update) -> None:
+        if not asked:  # the first reading: the start-up rest is in use
+            asked.append(sensor.rest)
+            sensor.retake_rest()
+            assert sensor.rest_requested
+        elif sensor.rest.origin == "requested" and not used:
+            used.append(sensor.predictor.rest.copy())
+            done.set()
+
+    sensor.on_update(on_update)
+    with sensor:
+        assert done.wait(60), "no requested rest reference taken"
+    assert sensor.error is None and asked[0].origin == "start-up"
+    assert used and not sensor.rest_requested
+    np.testing.assert_array_equal(used[0], sensor.rest.image)  # the model reads against it
+    assert sensor.rest.taken_at_s > asked[0].taken_at_s
+
+
+def test_retake_rest_without_a_rest_reference_is_refused_by_name(tiny_model):
+    settings = dataclasses.replace(TORCH, health=False)
+    with LiveSensor(tiny_model, resting_camera(1.0), settings) as sensor:
+        with pytest.raises(ConfigError, match="no rest input and health is off"):
+            sensor.retake_rest()
 
 
 def test_health_save_rest_writes_what_live_rest_reads(quiet_model, tmp_path):

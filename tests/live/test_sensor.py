@@ -329,6 +329,10 @@ def test_viewer_state_events_and_record_endpoint(model, presses, tmp_path):
                 _next_event(events)
             elapsed = time.monotonic() - start
         assert elapsed >= 5 / 10 * 0.9  # at most max_fps messages per second
+        assert set(first["rest"]) == {"origin", "taken_at_s", "requested"}
+        # re-take rest button
+        asked = _post(viewer.url + "api/rest", {})["rest"]
+        assert asked["requested"] is True and sensor.rest_requested
         # record button
         bad = urllib.request.Request(viewer.url + "api/record", data=b"action=start")
         with pytest.raises(urllib.error.HTTPError) as info:

@@ -91,6 +91,16 @@ def _check_live_page(page, tmp_path: Path) -> None:
     assert chip.is_visible()
     assert page.locator("#health-state").inner_text() in ("unknown", "ok", "drifting")
     assert chip.get_attribute("title")
+    # re-take rest button: the server answers that a new rest reference was asked for
+    rest = page.locator("#rest-btn")
+    assert rest.is_visible() and "rest reference" in rest.get_attribute("title")
+    rest.click()
+    page.wait_for_function(
+        """() => { const b = document.getElementById('rest-btn');
+             return b.textContent === 'Taking rest…' || b.title.includes('requested'); }""",
+        timeout=10_000,
+    )
+    assert "failed" not in page.locator("#record-info").inner_text()
     # the images were drawn: the map canvas and the camera canvas are not blank
     for canvas in ("map", "frame", "colorbar", "trace"):
         lit = page.evaluate(

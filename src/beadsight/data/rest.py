@@ -40,7 +40,7 @@ REST_SETTLE_FRAMES = 15  # a rest image ends a run of at least this many unloade
 REST_MAX_FORCE_N = 10.0 * REFERENCE_G_TO_N  # "unloaded": the reference's no-contact level, 10 g
 REST_FILE_VERSION = 2  # 1 (beadsight <= 0.1 health files: a 64 px gray image) is not read
 REST_FILE_MAX_PX = 1024  # the largest rest image a rest file may hold (3 MiB of RGB)
-REST_ORIGINS = ("start-up", "refreshed", "file", "given")
+REST_ORIGINS = ("start-up", "refreshed", "requested", "file", "given")
 
 
 def rest_ends(force_n: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -94,8 +94,8 @@ class RestReference:
     """The pouch at rest: image (S, S, 3) uint8 RGB, the average of ``frames`` still,
     unloaded frames (:func:`average_rest`); taken_at_s: when (frame time, s; NaN if
     unknown); origin: one of :data:`REST_ORIGINS` ("start-up": taken when sensing
-    started, "refreshed": taken later, "file": loaded from a rest file, "given": made
-    by the caller)."""
+    started, "refreshed": taken later, "requested": taken when the user asked (the pouch said to be
+    unloaded), "file": loaded from a rest file, "given": made by the caller)."""
 
     image: np.ndarray
     frames: int = 1

@@ -18,6 +18,11 @@ frame, when to take one:
   seen as motion) never enter a rest image;
 * at most one rest reference per :data:`REST_REFRESH_S` of frame time.
 
+On request (:meth:`RestTracker.request`: the user or robot knows the pouch is unloaded, e.g.
+the gripper is open) the next still frames are taken whatever the readings say: the way
+out of a stale rest image (the pouch bumped or re-seated), which reads as a load that
+would otherwise never end.
+
 A steady load is never unloaded, so it is never taken for the rest state, however still.
 With each new reference the tracker says whether the pouch was loaded since the previous
 one (:attr:`RestTracker.loaded_before`), which the health monitor needs to tell drift
@@ -27,6 +32,7 @@ from the new packing a press leaves.
 from __future__ import annotations
 
 import math
+import threading
 from collections import deque
 
 import cv2
@@ -72,6 +78,7 @@ class RestTracker:
             maxlen=REST_FRAMES + REST_GUARD_FRAMES
         )
         self._last_s = -math.inf
+        self._requested = threading.Event()
 
     @property
     def unloaded(self) -> bool:
@@ -82,6 +89,16 @@ class RestTracker:
             return False
         median = float(np.median(recent))
         return median <= self.thresholds.release_n and max(recent) < self.thresholds.contact_n
+
+    def request(self) -> None:
+        """Take the next rest reference from the next still frames, whatever the readings
+        (the caller knows the pouch is unloaded). Safe to call from any thread."""
+        self._requested.set()
+
+    @property
+    def requested(self) -> bool:
+        """A requested rest reference has not been taken yet."""
+        return self._requested.is_set()
 
     def add(
         self, frame_rgb: np.ndarray, t_s: float, still: bool, force_n: float | None
@@ -94,19 +111,23 @@ class RestTracker:
             self._recent.append(float(force_n))
             if not self.unloaded:
                 self.loaded_since_rest = True
-        at_rest = still and (self.unloaded or (self._readings == 0 and self.taken == 0))
-        if not at_rest:
+        requested = self._requested.is_set()
+        startup = self._readings == 0 and self.taken == 0
+        if not (still and (requested or self.unloaded or startup)):
             self._frames.clear()
             return None
         self._frames.append((frame_rgb.copy(), float(t_s)))
-        if len(self._frames) < self._frames.maxlen or t_s - self._last_s < self.refresh_s:
+        if len(self._frames) < self._frames.maxlen:
+            return None
+        if not requested and t_s - self._last_s < self.refresh_s:
             return None
         frames = [f for f, _ in list(self._frames)[:REST_FRAMES]]
         taken_at_s = self._frames[REST_FRAMES - 1][1]
         self._frames.clear()
         self._last_s = t_s
         self.loaded_before, self.loaded_since_rest = self.loaded_since_rest, False
-        origin = "refreshed" if self.taken else "start-up"
+        origin = "requested" if requested else "refreshed" if self.taken else "start-up"
+        self._requested.clear()
         self.taken += 1
         return RestReference(average_rest(np.stack(frames)), REST_FRAMES, taken_at_s, origin)
 

@@ -131,6 +131,12 @@ class SensorWatch:
         if self.monitor is not None:
             self.monitor.add(rest, self.tracker.loaded_before)
 
+    def request_rest(self) -> None:
+        """Take the next still frames as the rest reference, whatever the readings (the
+        pouch is said to be unloaded). Safe to call from any thread."""
+        self.tracker.request()
+        logger.info("rest: a new rest reference was asked for; taken from the next still frames")
+
     def reset(self) -> None:
         """The stream restarted (camera reopened): forget stillness and recent readings."""
         self.stillness.reset()

@@ -59,7 +59,7 @@ from beadsight.devices.base import (
     DeviceTimeoutError,
     Frame,
 )
-from beadsight.errors import BeadSightError
+from beadsight.errors import BeadSightError, ConfigError
 from beadsight.health.monitor import HealthReport
 from beadsight.health.watch import SensorWatch
 from beadsight.inference.predictor import PressurePredictor, PressureReading
@@ -197,6 +197,28 @@ class LiveSensor:
         """A new rest reference (start-up, or the pouch unloaded and still again)."""
         if self.model is not None and self.model.rest:
             self.predictor.set_rest(rest.image)
+
+    @property
+    def rest(self) -> RestReference | None:
+        """The rest reference in use (None before the first, or where none is kept)."""
+        return self.watch.rest if self.watch is not None else None
+
+    @property
+    def rest_requested(self) -> bool:
+        """:meth:`retake_rest` was called and its rest reference is not taken yet."""
+        return self.watch is not None and self.watch.tracker.requested
+
+    def retake_rest(self) -> None:
+        """Take the next still frames as the rest reference, whatever the model reads: for a
+        pouch known to be unloaded that reads a load (bumped or re-seated; docs/live.md).
+        Any thread; ConfigError where no rest reference is kept."""
+        self._require_started()
+        if self.watch is None:
+            raise ConfigError(
+                f"checkpoint {self.model.source} has no rest input and health is off: "
+                "there is no rest reference to take"
+            )
+        self.watch.request_rest()
 
     def start(self) -> LiveSensor:
         """:meth:`open` (if not done yet), then start the sensing thread."""

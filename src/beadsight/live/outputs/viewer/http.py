@@ -393,7 +393,7 @@ class ViewerHandler(BaseHTTPRequestHandler):
         if not self._host_ok():
             return
         viewer = self.server.viewer
-        if self.path != "/api/record":
+        if self.path not in ("/api/record", "/api/rest"):
             self._json({"error": f"no such endpoint: {self.path}"}, HTTPStatus.NOT_FOUND)
             return
         # JSON only: a cross-site form cannot send it without a CORS preflight we refuse
@@ -408,9 +408,12 @@ class ViewerHandler(BaseHTTPRequestHandler):
             return
         try:
             request = json.loads(body or b"{}")
-            self._json(viewer.record(str(request.get("action"))))
-        except (ValueError, AttributeError) as e:
+            if self.path == "/api/rest":
+                self._json(viewer.retake_rest())
+            else:
+                self._json(viewer.record(str(request.get("action"))))
+        except (ValueError, AttributeError) as e:  # ConfigError is a ValueError too
             self._json({"error": str(e)}, HTTPStatus.BAD_REQUEST)
         except (BeadSightError, OSError) as e:
-            logger.error("viewer: record: %s", e)
+            logger.error("viewer: %s: %s", self.path, e)
             self._json({"error": str(e)}, HTTPStatus.INTERNAL_SERVER_ERROR)

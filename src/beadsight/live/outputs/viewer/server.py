@@ -11,6 +11,8 @@ Routes:
 * ``GET /api/state`` -- the same JSON once, without images (for scripts).
 * ``POST /api/record`` with JSON ``{"action": "start" | "stop"}`` -- start/stop
   recording readings to a new HDF5 file in ``record_dir`` (a new name each time).
+* ``POST /api/rest`` with JSON ``{}`` -- take a new rest reference from the next still
+  frames (the pouch is unloaded; :meth:`beadsight.live.sensor.LiveSensor.retake_rest`).
 
 Requests for another ``Host`` than this machine's are refused (DNS rebinding); requests
 are read by one event loop, so half-sent ones cost nothing and time out (see
@@ -21,7 +23,8 @@ A state message: ``status`` (state, message), ``stats`` (rate, latency percentil
 ``frame`` / ``map`` (data: URLs of the camera frame (JPEG) and the colour-mapped kPa
 map (PNG); only when a new reading came since the last message to this client),
 ``contours`` (contact outline polygons) and ``cop`` (marker position), both as
-fractions of the image side, ``trace`` (new ``[t_s, force_n, reference_force_n]``
+fractions of the image side, ``rest`` (the rest reference's origin and frame time, and
+whether a new one was asked for; null where none is kept), ``trace`` (new ``[t_s, force_n, reference_force_n]``
 points since this client's previous message), ``recording`` and ``record_error`` (why
 the last recording stopped by itself, e.g. a full disk; else null).
 
@@ -277,6 +280,7 @@ class ViewerServer(Closes):
             "record_error": self.sensor.recording_error,
             "reading": None,
             "health": None,
+            "rest": self._rest(),
         }
         if update is not None and update.health is not None:
             state["health"] = health_report(status, update.health, time.time())
@@ -333,6 +337,22 @@ class ViewerServer(Closes):
             "source": sensor.source.name if sensor.source is not None else None,
             "backend": sensor.predictor.backend.describe() if sensor.predictor else None,
         }
+
+    def _rest(self) -> dict[str, Any] | None:
+        """The rest reference in use (None where the sensor keeps none)."""
+        if self.sensor.watch is None:
+            return None
+        rest = self.sensor.rest
+        return {
+            "origin": None if rest is None else rest.origin,
+            "taken_at_s": None if rest is None else _finite(rest.taken_at_s, 3),
+            "requested": self.sensor.rest_requested,
+        }
+
+    def retake_rest(self) -> dict[str, Any]:
+        """Ask the sensor for a new rest reference (:meth:`LiveSensor.retake_rest`)."""
+        self.sensor.retake_rest()
+        return {"rest": self._rest()}
 
     def record(self, action: str) -> dict[str, Any]:
         """Start/stop recording (each start to a new file). The answer carries
