@@ -9,7 +9,10 @@ taken from beadsight. It subscribes the way ROS 2 nodes do: the sensor-data prof
 keep last 10) on the rest, and prints one JSON line per message received. It stops
 after SECONDS, or once the health topic reports the sensor ended or stopped.
 
-    python ros2_peer.py DOMAIN NAMESPACE SECONDS [--camera]
+    python ros2_peer.py DOMAIN NAMESPACE SECONDS [--camera] [--retake]
+
+``--retake``: first write one std_msgs/msg/Empty to NAMESPACE/retake_rest (reliable), as a
+robot asking for a new rest reference does.
 
 (No ``from __future__ import annotations``: Cyclone reads these classes' annotations.)
 """
@@ -24,6 +27,7 @@ from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl.types import byte, float64, int32, sequence, uint8, uint32
 from cyclonedds.internal import InvalidSample
+from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Policy, Qos
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -110,6 +114,11 @@ class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::Diagnost
 class DiagnosticArray(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticArray_"):
     header: Header
     status: sequence[DiagnosticStatus]
+
+
+@dataclass
+class Empty(IdlStruct, typename="std_msgs::msg::dds_::Empty_"):
+    structure_needs_at_least_one_member: uint8  # rosidl gives an empty message one member
 
 
 SENSOR_DATA = Qos(
@@ -221,6 +230,12 @@ def main() -> None:
         readers[name] = DataReader(dp, Topic(dp, f"rt{namespace}/{name}", cls), qos=qos)
     print(json.dumps({"ready": True}), flush=True)
     end = time.monotonic() + seconds
+    if "--retake" in sys.argv[4:]:  # as `ros2 topic pub --once <ns>/retake_rest std_msgs/msg/Empty`
+        writer = DataWriter(dp, Topic(dp, f"rt{namespace}/retake_rest", Empty), qos=DEFAULT)
+        while not writer.get_matched_subscriptions() and time.monotonic() < end:
+            time.sleep(0.01)
+        writer.write(Empty(0))
+        print(json.dumps({"topic": "retake_sent"}), flush=True)
     while time.monotonic() < end:
         if drain(readers):  # what was written before the end may still be on its way
             time.sleep(0.3)

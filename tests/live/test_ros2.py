@@ -99,7 +99,8 @@ def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path):
         *("live", "--source", "sim", "--no-viewer", "--frames", "130", "--max-age", "30"),
         *("--ros2", "--ros-domain", str(domain), "--output", str(out), "--backend", "torch"),
     )
-    run.wait_line(rf"ros2: domain {domain}: /beadsight/pressure, /beadsight/force", 60)
+    started = rf"ros2: domain {domain}: /beadsight/pressure, /beadsight/force.*; reads (\S+)"
+    assert run.wait_line(started, 60).group(1) == "/beadsight/retake_rest"
     assert run.proc.wait(90) == 0, run.rest()
     got = peer.messages()
     with h5py.File(out) as f:
@@ -203,6 +204,25 @@ def test_health_camera_and_namespace_reach_the_subscriber(dds):
         assert float(drift["values"]["bead_shift_px"]) >= 0
         assert drift["values"]["force_offset_n"] == "" and drift["values"]["n"] == "3"
     assert got["health"][-1]["status"][0]["values"]["state"] == "ended"
+
+
+def test_a_robot_asks_for_a_new_rest_reference_on_retake_rest(dds):
+    from beadsight.live.outputs.ros2 import Ros2Publisher
+
+    domain, _ = dds
+    asked = threading.Event()
+    publisher = Ros2Publisher(msg.DEFAULT_NAMESPACE, domain, on_retake_rest=asked.set)
+    try:
+        assert publisher.retake_topic == "/beadsight/retake_rest"
+        peer = Peer(domain, msg.DEFAULT_NAMESPACE, "--retake")
+        assert asked.wait(30), "the robot's message on /beadsight/retake_rest did not arrive"
+        assert publisher.retake_requests == 1
+        node = publisher.graph.info["node_entities_info_seq"][0]
+        assert len(node["reader_gid_seq"]) == 1  # ROS tools see the node read the topic
+        peer.proc.kill()
+        peer.proc.wait()
+    finally:
+        publisher.finish()
 
 
 def test_messages_decode_with_rosbags(dds):

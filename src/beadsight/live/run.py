@@ -113,9 +113,12 @@ def _start_publishers(config: LiveRunConfig, sensor: LiveSensor, echo: Callable)
                 config.ros_domain,
                 config.ros_camera,
                 max_age_s=config.max_age_s,
+                on_retake_rest=sensor.retake_rest if sensor.watch is not None else None,
             )
         )
-        echo(f"ros2: domain {config.ros_domain}: {', '.join(started[-1].topics())}")
+        ros = started[-1]
+        reads = f"; reads {ros.retake_topic}" if ros.on_retake_rest else ""
+        echo(f"ros2: domain {config.ros_domain}: {', '.join(ros.topics())}{reads}")
     if config.foxglove:
         from beadsight.live.outputs.foxglove import FoxgloveServer
 

@@ -11,6 +11,9 @@ receives it:
   ``SensorDataQoS`` (best effort, keep last 5) and the default (reliable, keep last 10).
   A subscriber asking for transient-local durability does not match (nothing is latched).
 
+One topic is read: a message (``std_msgs/msg/Empty``) on ``<namespace>/retake_rest``
+asks for a new rest reference (``on_retake_rest``; docs/live.md, "The rest reference").
+
 Topics, message contents and units are those of :mod:`beadsight.live.ros.messages`
 (the same as the MCAP export). Publishing runs on its own thread
 (:class:`~beadsight.live.outputs.base.OutputListener`): a slow network skips readings
@@ -21,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -31,7 +34,7 @@ from beadsight.live.config import MAX_AGE_S, MAX_DOMAIN_ID, check_domain, check_
 from beadsight.live.outputs.base import DEFAULT_QUEUE_SIZE, OutputListener
 from beadsight.live.outputs.ros2_graph import RosGraph, participant_qos
 from beadsight.live.ros import messages as msg
-from beadsight.live.ros.types import TOPIC_TYPES, build_struct, idl_structs
+from beadsight.live.ros.types import COMMAND_TYPES, TOPIC_TYPES, build_struct, idl_structs
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +79,19 @@ def default_qos() -> Any:
     )
 
 
+def command_qos() -> Any:
+    """What the command topics are read with: best effort, so that both ROS 2 profiles a
+    robot may publish with (reliable by default, best effort) match."""
+    from cyclonedds.qos import Policy, Qos
+
+    return Qos(
+        Policy.Reliability.BestEffort,
+        Policy.History.KeepLast(HISTORY_DEPTH),
+        Policy.Durability.Volatile,
+        Policy.DataRepresentation(use_cdrv0_representation=True),
+    )
+
+
 class Ros2Publisher(OutputListener):
     """Publishes each live update as ROS 2 messages (a ``LiveListener``).
 
@@ -83,6 +99,9 @@ class Ros2Publisher(OutputListener):
     domain_id: the ROS_DOMAIN_ID to publish in (0..232; see :func:`domain_from_environment`).
     camera: also publish the model-input frame (``<namespace>/camera``, rgb8).
     max_age_s, queue_size: the slow-client rule (:class:`~beadsight.live.outputs.base.OutputListener`).
+    on_retake_rest: called (on a Cyclone thread) for each message on
+    ``<namespace>/retake_rest`` (``std_msgs/msg/Empty``), e.g.
+    :meth:`~beadsight.live.sensor.LiveSensor.retake_rest`; None: the topic is not read.
     Cyclone DDS reads its network settings from ``$CYCLONEDDS_URI`` as usual.
     """
 
@@ -95,13 +114,16 @@ class Ros2Publisher(OutputListener):
         camera: bool = False,
         max_age_s: float = MAX_AGE_S,
         queue_size: int = DEFAULT_QUEUE_SIZE,
+        on_retake_rest: Callable[[], None] | None = None,
     ):
         self.namespace = check_namespace(namespace)
         self.domain_id = check_domain(domain_id)
         self.camera = camera
         types_ = idl_structs()
+        from cyclonedds.core import Listener
         from cyclonedds.domain import DomainParticipant
         from cyclonedds.pub import DataWriter
+        from cyclonedds.sub import DataReader
         from cyclonedds.topic import Topic
 
         self._participant = DomainParticipant(domain_id, qos=participant_qos())
@@ -117,17 +139,33 @@ class Ros2Publisher(OutputListener):
             writer = DataWriter(self._participant, topic, qos=qos)
             self._entities += [writer, topic]
             self._writers[name] = (writer, cls)
+        self.on_retake_rest = on_retake_rest
+        self.retake_requests = 0  # messages received on <namespace>/retake_rest
+        readers = []
+        if on_retake_rest is not None:
+            cls = types_[COMMAND_TYPES[msg.RETAKE_REST]]
+            name = DDS_TOPIC_PREFIX + self._topic(msg.RETAKE_REST)
+            topic = Topic(self._participant, name, cls, qos=command_qos())
+            listener = Listener(on_data_available=self._retake_rest)
+            readers.append(DataReader(self._participant, topic, command_qos(), listener))
+            self._entities += [readers[-1], topic]
         self.graph = RosGraph(
             self._participant,
             self.namespace,
             {DDS_TOPIC_PREFIX + self._topic(n): self._topic(n) for n in self._writers},
             [writer for writer, _cls in self._writers.values()],
+            readers,
         )
         self._entities = [*self.graph.entities(), *self._entities]
         super().__init__(max_age_s=max_age_s, queue_size=queue_size)
 
     def _topic(self, name: str) -> str:
         return msg.topic(self.namespace, name)
+
+    @property
+    def retake_topic(self) -> str:
+        """The ROS 2 topic a robot writes to for a new rest reference."""
+        return self._topic(msg.RETAKE_REST)
 
     def topics(self) -> dict[str, str]:
         """ROS 2 topic name -> ROS 2 type of everything this publisher writes."""
@@ -139,6 +177,23 @@ class Ros2Publisher(OutputListener):
             self._topic(name): len(writer.get_matched_subscriptions())
             for name, (writer, _cls) in self._writers.items()
         }
+
+    def _retake_rest(self, reader: Any) -> None:
+        """A message on the retake_rest topic: ask for a new rest reference."""
+        from cyclonedds.internal import InvalidSample
+
+        try:
+            samples = [s for s in reader.take(N=HISTORY_DEPTH) if not isinstance(s, InvalidSample)]
+        except Exception:  # the reader is being deleted
+            return
+        if not samples:
+            return
+        self.retake_requests += len(samples)
+        logger.info("ros2: a new rest reference asked for on %s", self.retake_topic)
+        try:
+            self.on_retake_rest()
+        except BeadSightError as e:
+            logger.warning("ros2: %s: %s", self.retake_topic, e)
 
     def _write(self, name: str, message: dict[str, Any]) -> None:
         writer, cls = self._writers[name]

@@ -93,13 +93,19 @@ class OtherPublisher:
 class RosGraph:
     """Announce our node on ``participant`` and watch for other writers on ``topics``.
 
-    topics: DDS topic name -> ROS 2 topic name, of our writers. writers: our DataWriters.
+    topics: DDS topic name -> ROS 2 topic name, of our writers. writers, readers: our
+    DataWriters and DataReaders (the node owns them).
     The participant must have been made with :func:`participant_qos`. :meth:`entities`
     lists the DDS entities made here (to delete before the participant).
     """
 
     def __init__(
-        self, participant: Any, namespace: str, topics: dict[str, str], writers: list[Any]
+        self,
+        participant: Any,
+        namespace: str,
+        topics: dict[str, str],
+        writers: list[Any],
+        readers: list[Any] = (),
     ):
         from cyclonedds.builtin import (
             BuiltinDataReader,
@@ -129,7 +135,11 @@ class RosGraph:
             listener=Listener(on_data_available=lambda _reader: self._check()),
         )
         self.info = entities_info(
-            self._guid, namespace, NODE_NAME, [w.guid for w in [*writers, self._info_writer]]
+            self._guid,
+            namespace,
+            NODE_NAME,
+            [w.guid for w in [*writers, self._info_writer]],
+            [r.guid for r in readers],
         )
         self._info_writer.write(build_struct(cls, self.info))
         self._check()

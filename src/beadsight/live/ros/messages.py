@@ -51,6 +51,7 @@ PRESSURE, FORCE, COP, CONTACT_AREA, HEALTH, CAMERA, REFERENCE_FORCE = (
     "camera",
     "reference_force",
 )
+RETAKE_REST = "retake_rest"  # the topic a robot writes to (std_msgs/msg/Empty): re-take rest
 M_PER_MM = 1e-3
 M2_PER_MM2 = 1e-6
 NS_PER_S = 1_000_000_000

@@ -35,6 +35,7 @@ TOPIC_TYPES = {  # topic name (under the namespace) -> ROS 2 type (see ros.messa
     msg.REFERENCE_FORCE: "geometry_msgs/msg/WrenchStamped",
     msg.CAMERA: "sensor_msgs/msg/Image",
 }
+COMMAND_TYPES = {msg.RETAKE_REST: "std_msgs/msg/Empty"}  # topics read (under the namespace)
 # ROS 2 primitive -> Cyclone IDL type name in cyclonedds.idl.types (None: a Python type)
 _PRIMITIVES = {
     "bool": None,
@@ -87,15 +88,17 @@ def dds_type_name(ros_type: str) -> str:
 
 @functools.cache
 def idl_structs() -> dict[str, type]:
-    """ROS 2 type -> Cyclone DDS IDL struct, for every type in :data:`TOPIC_TYPES` (and their
-    fields' types, built on the way). ``sensor_msgs/msg/Image`` serialises its ``data``
-    fast where this Cyclone allows it (:func:`fast_byte_sequences`)."""
+    """ROS 2 type -> Cyclone DDS IDL struct, for every type in :data:`TOPIC_TYPES` and
+    :data:`COMMAND_TYPES` (and their fields' types, built on the way).
+    ``sensor_msgs/msg/Image`` serialises its ``data`` fast where this Cyclone allows it
+    (:func:`fast_byte_sequences`)."""
     _require("cyclonedds.idl", "--ros2")
     built: dict[str, type] = {}
-    for ros_type in sorted(set(TOPIC_TYPES.values())):
+    wanted = {*TOPIC_TYPES.values(), *COMMAND_TYPES.values()}
+    for ros_type in sorted(wanted):
         _struct(ros_type, built)
     fast_byte_sequences(built["sensor_msgs/msg/Image"])
-    return {t: built[t] for t in TOPIC_TYPES.values()}
+    return {t: built[t] for t in wanted}
 
 
 @functools.cache
