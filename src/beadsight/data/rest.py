@@ -94,8 +94,8 @@ class RestReference:
     """The pouch at rest: image (S, S, 3) uint8 RGB, the average of ``frames`` still,
     unloaded frames (:func:`average_rest`); taken_at_s: when (frame time, s; NaN if
     unknown); origin: one of :data:`REST_ORIGINS` ("start-up": taken when sensing
-    started, "refreshed": taken later, "requested": taken when the user asked (the pouch said to be
-    unloaded), "file": loaded from a rest file, "given": made by the caller)."""
+    started, "refreshed": taken later, "requested": taken when the user asked (the pouch
+    said to be unloaded), "file": loaded from a rest file, "given": made by the caller)."""
 
     image: np.ndarray
     frames: int = 1

@@ -50,7 +50,6 @@ from beadsight.devices.base import (
     DeviceContext,
     DeviceNotConnectedError,
     Frame,
-    host_now,
     wait_or_time_out,
 )
 from beadsight.devices.clock import SimClock
@@ -377,7 +376,7 @@ class BufferedCamera(DeviceContext):
                     captured, self._first = self._first, None
                 else:
                     captured = self._grab()
-                t_unix, t_mono = host_now()
+                t_unix, t_mono = self.clock.stamp()
                 if captured is None or stop.is_set():
                     break
                 self._push(check_image(self.name, captured[0]), captured[1:], t_unix, t_mono)

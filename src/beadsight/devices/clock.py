@@ -5,12 +5,19 @@ Simulated seconds run ``time_scale`` times faster than the host's monotonic cloc
 duration a virtual device models (move time, dwell, sample period, frame period, boot
 delay) is in simulated seconds; the drivers on the other side only ever see host time.
 A ``SimClock()`` at the default scale is the host clock: the cameras pace frames on it.
+Capture timestamps are host time (:meth:`SimClock.stamp`), except on a
+:class:`SteppedClock`, whose time moves only when a device waits: timing logic (frame
+gaps, delivered rates) tested on it sees no host jitter.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+
+from beadsight.devices.base import host_now
+
+STEPPED_EPOCH_UNIX = 1_700_000_000.0  # a SteppedClock's time 0 as a unix time, s
 
 
 class SimClock:
@@ -36,3 +43,38 @@ class SimClock:
         if delay <= 0:
             return not stop.is_set()
         return not stop.wait(delay)
+
+    def stamp(self) -> tuple[float, float]:
+        """``(t_unix, t_mono)`` of a capture now: the host's clocks."""
+        return host_now()
+
+
+class SteppedClock(SimClock):
+    """Simulated time that moves only when a device waits for it: each
+    :meth:`wait_until` jumps to its target after ``step_real_s`` host seconds (so a
+    device on it runs fast without spinning), and capture stamps are this time, not the
+    host's. For tests of timing logic that a loaded machine's jitter would upset."""
+
+    def __init__(self, step_real_s: float = 0.001):
+        super().__init__(1.0)
+        self.step_real_s = float(step_real_s)
+        self._t = 0.0
+        self._lock = threading.Lock()
+
+    def now(self) -> float:
+        with self._lock:
+            return self._t
+
+    def to_real_s(self, sim_s: float) -> float:
+        return 0.0
+
+    def wait_until(self, sim_t: float, stop: threading.Event) -> bool:
+        if stop.wait(self.step_real_s):
+            return False
+        with self._lock:
+            self._t = max(self._t, float(sim_t))
+        return True
+
+    def stamp(self) -> tuple[float, float]:
+        t = self.now()
+        return STEPPED_EPOCH_UNIX + t, t

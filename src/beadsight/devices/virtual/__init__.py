@@ -6,7 +6,8 @@
   :class:`PlaybackCamera` plays given frames, :class:`SimCamera` the simulated sensor.
 * :class:`VirtualRig` - printer, scale and camera driven by one simulated pouch
   (``beadsight.sim``).
-* :class:`SimClock` - simulated time, optionally faster than real time.
+* :class:`SimClock` - simulated time, optionally faster than real time;
+  :class:`SteppedClock` - simulated time that moves only when a device waits.
 
 The printer, scale and rig are Linux/macOS only (they use ``pty``); the cameras run
 anywhere. Names are imported on first use, so importing a camera does not need ``pty``.
@@ -21,6 +22,7 @@ _WHERE = {
     "SimCamera": "beadsight.devices.virtual.camera",
     "VirtualCamera": "beadsight.devices.virtual.camera",
     "SimClock": "beadsight.devices.clock",
+    "SteppedClock": "beadsight.devices.clock",
     "VirtualPrinter": "beadsight.devices.virtual.printer",
     "VirtualRig": "beadsight.devices.virtual.rig",
     "VirtualScale": "beadsight.devices.virtual.scale",

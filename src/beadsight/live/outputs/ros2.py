@@ -13,6 +13,8 @@ receives it:
 
 One topic is read: a message (``std_msgs/msg/Empty``) on ``<namespace>/retake_rest``
 asks for a new rest reference (``on_retake_rest``; docs/live.md, "The rest reference").
+It is read reliably, so a command is not lost: a publisher with ROS 2's default profile
+(as ``ros2 topic pub``) matches, a best-effort one does not.
 
 Topics, message contents and units are those of :mod:`beadsight.live.ros.messages`
 (the same as the MCAP export). Publishing runs on its own thread
@@ -68,24 +70,13 @@ def domain_from_environment(environ: Mapping[str, str] = os.environ) -> int:
 
 
 def default_qos() -> Any:
+    """Reliable, keep last :data:`HISTORY_DEPTH`, volatile, XCDR1 (module docstring): what
+    the topics are written with and the command topic is read with."""
     from cyclonedds.qos import Policy, Qos
     from cyclonedds.util import duration
 
     return Qos(
         Policy.Reliability.Reliable(duration(seconds=MAX_BLOCKING_S)),
-        Policy.History.KeepLast(HISTORY_DEPTH),
-        Policy.Durability.Volatile,
-        Policy.DataRepresentation(use_cdrv0_representation=True),
-    )
-
-
-def command_qos() -> Any:
-    """What the command topics are read with: best effort, so that both ROS 2 profiles a
-    robot may publish with (reliable by default, best effort) match."""
-    from cyclonedds.qos import Policy, Qos
-
-    return Qos(
-        Policy.Reliability.BestEffort,
         Policy.History.KeepLast(HISTORY_DEPTH),
         Policy.Durability.Volatile,
         Policy.DataRepresentation(use_cdrv0_representation=True),
@@ -145,9 +136,9 @@ class Ros2Publisher(OutputListener):
         if on_retake_rest is not None:
             cls = types_[COMMAND_TYPES[msg.RETAKE_REST]]
             name = DDS_TOPIC_PREFIX + self._topic(msg.RETAKE_REST)
-            topic = Topic(self._participant, name, cls, qos=command_qos())
+            topic = Topic(self._participant, name, cls, qos=qos)
             listener = Listener(on_data_available=self._retake_rest)
-            readers.append(DataReader(self._participant, topic, command_qos(), listener))
+            readers.append(DataReader(self._participant, topic, qos, listener))
             self._entities += [readers[-1], topic]
         self.graph = RosGraph(
             self._participant,

@@ -24,9 +24,10 @@ A state message: ``status`` (state, message), ``stats`` (rate, latency percentil
 map (PNG); only when a new reading came since the last message to this client),
 ``contours`` (contact outline polygons) and ``cop`` (marker position), both as
 fractions of the image side, ``rest`` (the rest reference's origin and frame time, and
-whether a new one was asked for; null where none is kept), ``trace`` (new ``[t_s, force_n, reference_force_n]``
-points since this client's previous message), ``recording`` and ``record_error`` (why
-the last recording stopped by itself, e.g. a full disk; else null).
+whether a new one was asked for; null where none is kept), ``trace`` (new
+``[t_s, force_n, reference_force_n]`` points since this client's previous message),
+``recording`` and ``record_error`` (why the last recording stopped by itself, e.g. a
+full disk; else null).
 
 The viewer is a :class:`beadsight.live.listeners.LiveListener`: the sensing thread only stores a
 reference to the newest update and appends one trace point. One thread serves every
