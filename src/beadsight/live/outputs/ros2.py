@@ -90,8 +90,8 @@ class Ros2Publisher(OutputListener):
     domain_id: the ROS_DOMAIN_ID to publish in (0..232; see :func:`domain_from_environment`).
     camera: also publish the model-input frame (``<namespace>/camera``, rgb8).
     max_age_s, queue_size: the slow-client rule (:class:`~beadsight.live.outputs.base.OutputListener`).
-    on_retake_rest: called (on a Cyclone thread) for each message on
-    ``<namespace>/retake_rest`` (``std_msgs/msg/Empty``), e.g.
+    on_retake_rest: called (on a Cyclone thread) once per batch of messages that arrive
+    together on ``<namespace>/retake_rest`` (``std_msgs/msg/Empty``), e.g.
     :meth:`~beadsight.live.sensor.LiveSensor.retake_rest`; None: the topic is not read.
     Cyclone DDS reads its network settings from ``$CYCLONEDDS_URI`` as usual.
     """
