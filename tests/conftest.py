@@ -148,9 +148,20 @@ def strided_model(probe_model) -> PressureModel:
 def rest_model() -> PressureModel:
     """An untrained rest-referenced model for 64x64 frames: the rest image, then a span of
     7 frames of which it sees every 2nd (4 frames); shared by a session."""
+    return make_rest_model()
+
+
+@pytest.fixture(scope="session")
+def rest_norm_model() -> PressureModel:
+    """:func:`rest_model` with its rest input contrast-normalised (``rest_norm``)."""
+    return make_rest_model(rest_norm=True)
+
+
+def make_rest_model(rest_norm: bool = False) -> PressureModel:
+    """:func:`rest_model`'s model, its rest input contrast-normalised with ``rest_norm``."""
     torch.manual_seed(1)
     meta = CheckpointMeta(
-        model=ModelConfig(frames=4, frame_stride=2, width=8, rest_input=True),
+        model=ModelConfig(frames=4, frame_stride=2, width=8, rest_input=True, rest_norm=rest_norm),
         geometry=TINY,
         pixel_mean=[120.0] * 3,
         pixel_std=[40.0] * 3,

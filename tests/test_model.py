@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from beadsight.config import ModelConfig
-from beadsight.model import InstanceNorm, UNet, UpBlock
+from beadsight.model import FramesToPressure, InstanceNorm, UNet, UpBlock
 
 
 def plain_unet(config: ModelConfig) -> UNet:
@@ -84,3 +84,20 @@ def test_onnx_export_keeps_instance_normalization():
     assert norms == 14 and ops["InstanceNormalization"] == norms
     # a group norm would export as Reshape -> InstanceNormalization -> Reshape -> Mul -> Add
     assert ops["Reshape"] == ops["Mul"] == ops["Add"] == ops["GroupNormalization"] == 0
+
+
+def test_rest_norm_input_ignores_a_pouchs_colour_gain_and_offset():
+    """With ``rest_norm`` the network input is the same when rest and window alike have
+    each colour channel scaled and shifted (another LED, exposure or bead tint); without
+    it, it is not. Invalid without a rest input."""
+    torch.manual_seed(0)
+    images = torch.randint(20, 200, (2, 8, 16, 16, 3)).float()  # rest + span 7
+    gain, offset = torch.tensor([0.6, 1.3, 0.9]), torch.tensor([25.0, -10.0, 5.0])
+    for norm in (True, False):
+        config = ModelConfig(frames=4, frame_stride=2, width=4, rest_input=True, rest_norm=norm)
+        module = FramesToPressure(UNet(config), [120.0] * 3, [40.0] * 3)
+        x, y = module.normalize(images), module.normalize(images * gain + offset)
+        assert x.shape == (2, 15, 16, 16)
+        assert torch.allclose(x, y, rtol=1e-3, atol=1e-3) == norm
+    with pytest.raises(ValueError, match="rest_norm needs rest_input"):
+        ModelConfig(rest_norm=True)

@@ -120,6 +120,9 @@ class ModelConfig(_Serializable):
     rest_input: bool = (
         False  # rest-referenced: the network also sees the pouch at rest (+3 channels)
     )
+    # rest-referenced, contrast-normalised: the rest image standardised per channel, and each
+    # seen frame's change from rest divided by the rest's per-channel contrast (its std)
+    rest_norm: bool = False
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -132,6 +135,8 @@ class ModelConfig(_Serializable):
             raise ConfigError(f"up_kernel must be 1 or 3, got {self.up_kernel}")
         if not 0 <= self.dropout < 1:
             raise ConfigError(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.rest_norm and not self.rest_input:
+            raise ConfigError("rest_norm needs rest_input (a rest image to normalise against)")
 
     @property
     def span(self) -> int:

@@ -248,11 +248,20 @@ class FramesToPressure(nn.Module):
         rest = self.normalize_frames(images[:, :1])  # (B, 1, 3, H, W)
         return self._relative(rest, self.normalize_frames(self.seen(images[:, 1:])))
 
-    @staticmethod
-    def _relative(rest: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+    def _relative(self, rest: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
         """rest (B, 1, 3, H, W), seen (B, T, 3, H, W) normalised -> (B, 3 + 3T, H, W):
-        the rest image, then each seen frame's change from it."""
-        return torch.cat([rest, seen - rest], dim=1).flatten(1, 2)
+        the rest image, then each seen frame's change from it.
+
+        With ``rest_norm`` both are in units of the rest image's own per-channel contrast
+        (its spatial standard deviation), and the rest image is centred on its mean: the
+        input no longer changes when a pouch's colours are scaled or shifted, rest and
+        window alike (another LED, exposure or bead tint)."""
+        change = seen - rest
+        if self.net.config.rest_norm:
+            mean = rest.mean(dim=(-2, -1), keepdim=True)  # (B, 1, 3, 1, 1)
+            scale = (rest - mean).square().mean(dim=(-2, -1), keepdim=True).add(1e-4).rsqrt()
+            rest, change = (rest - mean) * scale, change * scale
+        return torch.cat([rest, change], dim=1).flatten(1, 2)
 
     def pressure(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 3T, H, W) network input -> (B, H, W) kPa."""

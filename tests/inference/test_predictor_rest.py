@@ -106,10 +106,13 @@ def _runtime(model, name, module):
 
 
 @pytest.mark.parametrize("name, module", RUNTIMES)
-def test_the_rest_reaches_every_runtime(rest_model, name, module):
+@pytest.mark.parametrize("fixture", ["rest_model", "rest_norm_model"])
+def test_the_rest_reaches_every_runtime(fixture, name, module, request):
     """Streamed through the predictor, each runtime reads against the rest image in use:
     the first frames' average, then a new rest set mid-stream (a stateful runtime that
-    kept the old one would fail), and agrees with fp32 torch on the parity probe."""
+    kept the old one would fail), and agrees with fp32 torch on the parity probe; with
+    the rest input as it is and contrast-normalised (``rest_norm``, exported too)."""
+    rest_model = request.getfixturevalue(fixture)
     backend = _runtime(rest_model, name, module)
     if name == "cuda":
         assert backend.use_graphs  # the rest image reaches the captured graphs
@@ -145,3 +148,12 @@ def test_a_checkpoint_without_rest_input_loads_and_runs_unchanged(tiny_model, tm
     assert readings[: model.span - 1] == [None] * (model.span - 1)  # no wait for a rest
     assert predictor.rest is None
     np.testing.assert_allclose(readings[-1].pressure_kpa, model.predict(frames[1:]), atol=1e-4)
+
+
+def test_a_rest_norm_checkpoint_keeps_its_input(rest_norm_model, tmp_path):
+    """``rest_norm`` is saved with the checkpoint (format 4) and the loaded model reads as
+    the saved one; a reader that did not know it would read another input."""
+    model = load_checkpoint(rest_norm_model.save(tmp_path / "norm.pt"))
+    assert model.meta.model.rest_norm and model.meta.model.rest_input
+    images = np.stack([stream(rest_norm_model.inputs, seed=3)])
+    np.testing.assert_allclose(model.predict(images), rest_norm_model.predict(images), atol=1e-6)

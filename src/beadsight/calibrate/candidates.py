@@ -114,6 +114,7 @@ def candidate_config(
         up_kernel=m.up_kernel,
         dropout=0.0 if scratch else m.dropout,
         rest_input=m.rest_input,
+        rest_norm=m.rest_norm,
         image_size=base.image_size,
         epochs=RUN_EPOCHS,
         budget_min=1.0,  # set by train_candidate

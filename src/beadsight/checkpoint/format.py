@@ -9,7 +9,8 @@ Python values (it loads with ``weights_only=True``):
 The metadata carries the model config (``frames`` T, ``frame_stride``, width, ...),
 channel order, normalisation, output scale, sensor geometry, units and provenance,
 so the file alone rebuilds a working predictor. Versions :data:`READ_VERSIONS` are read:
-version 3 added rest-referenced models (``rest_input``), which version 2 files are not.
+version 3 added rest-referenced models (``rest_input``), which version 2 files are not;
+version 4 added the contrast-normalised rest input (``rest_norm``).
 
 :func:`read_checkpoint_file` reads any checkpoint file with ``weights_only=True``; numpy
 arrays are built only by the checked stand-ins of :mod:`beadsight.safe_numpy` (plain
@@ -39,8 +40,8 @@ from beadsight.files import atomic_write_bytes
 from beadsight.model import FramesToPressure, UNet, infer_model_config
 
 FORMAT = "beadsight-checkpoint"
-FORMAT_VERSION = 3  # written; 3 adds rest-referenced models (model.rest_input)
-READ_VERSIONS = (2, 3)  # read
+FORMAT_VERSION = 4  # written; 3 adds model.rest_input, 4 model.rest_norm
+READ_VERSIONS = (2, 3, 4)  # read
 UNITS = {"frames": "uint8 0..255", "pressure": "kPa", "force": "N", "position": "mm"}
 
 
@@ -395,8 +396,12 @@ def check_meta(meta: CheckpointMeta, state: dict[str, torch.Tensor], path: Path)
         have = infer_model_config(state, rest_input=meta.model.rest_input).to_dict()
     except (ValueError, IndexError) as e:
         raise CheckpointError(f"{path}: state_dict: {e}") from None
-    for key, value in meta.model.to_dict().items():  # dropout and stride are not in the shapes
-        if key in have and key not in ("dropout", "frame_stride") and have[key] != value:
+    for key, value in meta.model.to_dict().items():  # these three are not in the shapes
+        if (
+            key in have
+            and key not in ("dropout", "frame_stride", "rest_norm")
+            and have[key] != value
+        ):
             raise CheckpointError(
                 f"{path}: model {key} is {value} in the metadata but {have[key]} in the weights"
             )

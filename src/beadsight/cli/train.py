@@ -33,6 +33,12 @@ TRAIN_FLAGS = (
         "the change from rest, so a steady load keeps its reading)",
     ),
     (
+        "rest_norm",
+        "with --rest-input: the network sees the rest image standardised per channel and each "
+        "frame's change from rest divided by the rest's contrast, so a pouch's colours and "
+        "contrast matter less (for models meant for pouches of other looks)",
+    ),
+    (
         "color_jitter",
         "random colour, contrast and brightness changes of each training input, 0..1 "
         "(for models meant for pouches of other looks)",

@@ -53,10 +53,11 @@ RESUME_FIXED_FIELDS = (
     "train_layers",
     "augment",
     "rest_input",
+    "rest_norm",
     "color_jitter",
 )
 # Settings read from the ``init`` checkpoint when neither the TOML file nor a flag sets them.
-INIT_MODEL_FIELDS = ("frames", "frame_stride", "width", "up_kernel", "rest_input")
+INIT_MODEL_FIELDS = ("frames", "frame_stride", "width", "up_kernel", "rest_input", "rest_norm")
 # Of those, the ones the weights' shapes fix (a run may change the stride of its init).
 INIT_SHAPE_FIELDS = ("frames", "width", "up_kernel", "rest_input")
 _INT_MINIMUMS = {
@@ -123,6 +124,7 @@ class TrainConfig(_Serializable):
     train_layers: str = "all"  # all | decoder (the encoder stays as initialised)
     augment: bool = True  # the 8 dihedral transforms of the training windows
     rest_input: bool = False  # rest-referenced model: it also sees the pouch at rest
+    rest_norm: bool = False  # ... normalised by the rest image's own contrast (ModelConfig)
     color_jitter: float = 0.0  # strength of random colour/contrast changes (0: none; 1: strong)
     progress: bool = True  # tqdm progress bars
 
@@ -186,6 +188,7 @@ class TrainConfig(_Serializable):
             up_kernel=self.up_kernel,
             dropout=self.dropout,
             rest_input=self.rest_input,
+            rest_norm=self.rest_norm,
         )
 
     @property
