@@ -15,13 +15,11 @@
 #     base   builds (--variety train) and looks (--looks train) over the range, mixed
 #            profiles, colour jitter, from BASE_INIT: the candidate for base_model.pt
 #   looks: what makes a base model over looks generalise, on the same base presses and budget
-#     chan      rest input as rest + change channels (the model input of base_rest_wip.pt),
-#               from scratch
+#     chan      rest input as rest + change channels (no --rest-norm), from scratch
 #     norm      contrast-normalised rest input (--rest-norm), from scratch
 #     norm_nj   the same without colour jitter
-#     norm_wip  contrast-normalised, from BASE_INIT's weights
-#     t15       no rest input, T = 15 at stride 4, from base_model.pt (the shipped base
-#               model, which never saw the look families), now over looks with colour jitter
+#     norm_wip  contrast-normalised, from BASE_INIT (the shipped base_model.pt came from this
+#               model of the set's first run; base_model.md has that run's figures)
 # Every exact command is echoed into OUT/commands.txt. The last round's folders OUT/NAME_rN
 # continue with `beadsight train --out RUN --resume --budget-min M`. With RESULTS=DIR, each
 # round's checkpoints are also copied there as soon as the round ends: NAME.tar holds best.pt
@@ -34,7 +32,7 @@ out=${2:?output folder}
 deadline_s=${3:-480}
 set_name=${4:-rest}
 sim_init=${SIM_INIT:-src/beadsight/assets/sim_model.pt}
-base_init=${BASE_INIT:-models/base_rest_wip.pt}
+base_init=${BASE_INIT:-src/beadsight/assets/base_model.pt}
 start=$(date +%s)
 mkdir -p "$out"
 PY=${PYTHON:-python3}
@@ -54,8 +52,7 @@ case $set_name in
     "chan base - 1e-3 --rest-input --width 16 --frames 4 --frame-stride 2 --color-jitter 1"
     "norm base - 1e-3 --rest-input --rest-norm --width 16 --frames 4 --frame-stride 2 --color-jitter 1"
     "norm_nj base - 1e-3 --rest-input --rest-norm --width 16 --frames 4 --frame-stride 2"
-    "norm_wip base $base_init 5e-4 --rest-norm --color-jitter 1"
-    "t15 base src/beadsight/assets/base_model.pt 3e-4 --color-jitter 1") ;;
+    "norm_wip base $base_init 5e-4 --rest-norm --color-jitter 1") ;;
   *) echo "set must be rest or looks, got $set_name" >&2; exit 2 ;;
 esac
 names=(); for m in "${models[@]}"; do names+=("${m%% *}"); done

@@ -48,7 +48,7 @@ def base(tiny_model, tmp_path):
 def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     make_dataset, tmp_path, capsys
 ):
-    data = make_dataset(presses=6, frames_per_press=60)
+    data = make_dataset(presses=6, frames_per_press=80)  # 16 unloaded frames: a rest image
     out = tmp_path / "cal"
     # the shipped base (width 16) needs a few seconds of its budget for its evaluations
     assert cli("--data", data, "--out", out, "--budget-min", "0.3", "--no-progress") == 0

@@ -66,8 +66,8 @@ def test_checkpoint_of_another_format_version_is_refused(probe_model, tmp_path):
     meta["model"]["window"] = meta["model"].pop("frames")
     state = {k: v.clone() for k, v in probe_model.module.net.state_dict().items()}
     for version, path, match in [
-        (1, tmp_path / "v1.pt", r"format_version 1; this beadsight reads versions \(2, 3\)$"),
-        (4, tmp_path / "v4.pt", r"format_version 4; .*versions \(2, 3\); upgrade beadsight"),
+        (1, tmp_path / "v1.pt", r"format_version 1; this beadsight reads versions \(2, 3, 4\)$"),
+        (5, tmp_path / "v5.pt", r"format_version 5; .*versions \(2, 3, 4\); upgrade beadsight"),
         (None, tmp_path / "none.pt", r"format_version None; "),
     ]:
         meta["format_version"] = version

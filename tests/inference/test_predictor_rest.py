@@ -90,12 +90,15 @@ def test_the_rest_survives_reset(rest_model):
     assert predictor.rest is rest
 
 
-RUNTIMES = [
-    ("torch", None),
-    ("onnx", "onnxruntime"),
-    ("openvino", "openvino"),
-    ("ring", None),
-    pytest.param("cuda", None, marks=pytest.mark.gpu),
+RUNTIMES = [  # the contrast-normalised rest input where it is exported (its own graph)
+    ("rest_model", "torch", None),
+    ("rest_model", "onnx", "onnxruntime"),
+    ("rest_model", "openvino", "openvino"),
+    ("rest_model", "ring", None),
+    pytest.param("rest_model", "cuda", None, marks=pytest.mark.gpu),
+    ("rest_norm_model", "onnx", "onnxruntime"),
+    ("rest_norm_model", "openvino", "openvino"),
+    pytest.param("rest_norm_model", "cuda", None, marks=pytest.mark.gpu),
 ]
 
 
@@ -105,8 +108,7 @@ def _runtime(model, name, module):
     return build_backend(model, name, "fp32", cache_dir=None)
 
 
-@pytest.mark.parametrize("name, module", RUNTIMES)
-@pytest.mark.parametrize("fixture", ["rest_model", "rest_norm_model"])
+@pytest.mark.parametrize("fixture, name, module", RUNTIMES)
 def test_the_rest_reaches_every_runtime(fixture, name, module, request):
     """Streamed through the predictor, each runtime reads against the rest image in use:
     the first frames' average, then a new rest set mid-stream (a stateful runtime that
