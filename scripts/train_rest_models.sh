@@ -42,7 +42,8 @@ run() { echo "$*" >>"$out/commands.txt"; "$@"; }
 elapsed() { echo $(( $(date +%s) - start )); }
 
 # NAME DATA INIT LR [EXTRA...]: data "sim" or "base"; init "-" trains from scratch (the
-# extra arguments then give the shape); round 2 on continues the round before at LR_NEXT.
+# extra arguments then give the shape); from round 2 on each model continues its last round
+# (--init, its shape kept) at the same LR, with only its colour jitter repeated.
 case $set_name in
   rest) models=(
     "sim sim $sim_init 3e-4"
