@@ -10,8 +10,7 @@ with p99 <= 2 ms (CUDA graphs).
 Each row runs ``beadsight.live.bench.bench_live`` (simulated frames through
 ``PressurePredictor.update``): max throughput, sustained at --rate Hz, and the max
 error vs fp32 torch in % of the peak. Backends that are not installed or not
-supported here are listed as skipped. ``compile`` is included with --compile
-(its first build takes minutes; later runs load the cached package).
+supported here are listed as skipped.
 """
 
 from __future__ import annotations
@@ -35,11 +34,9 @@ CPU_TARGET = {"hz": 30.0, "p99_ms": 33.0}
 GPU_TARGET = {"hz": 1000.0, "p99_ms": 2.0}
 
 
-def rows(include_compile: bool) -> list[tuple[str, str, str | None]]:
+def rows() -> list[tuple[str, str, str | None]]:
     """(backend, precision, device) rows to measure here."""
     out = [("torch", "fp32", "cpu"), ("torch", "bf16", "cpu")]
-    if include_compile:
-        out.append(("compile", "fp32", None))
     out += [("onnx", "fp32", None), ("openvino", "fp32", None)]
     if openvino_supports_bf16():
         out.append(("openvino", "bf16", None))
@@ -53,7 +50,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=300, help="frames per run")
     parser.add_argument("--rate", type=float, default=30.0, help="sustained run's Hz (0: skip)")
     parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--compile", action="store_true", help="include torch.compile (slow)")
     parser.add_argument("--cache-dir", default=None, help="backend cache (default: none)")
     parser.add_argument("--json", action="store_true", help="one JSON object per row")
     add_model_arguments(parser)
@@ -71,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{'backend':16s} {'max Hz':>8s} {'p50 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} "
             f"{'@' + format(args.rate, 'g') + 'Hz':>8s} {'p99 ms':>8s} {'err %':>8s}  target"
         )
-    for name, precision, device in rows(args.compile):
+    for name, precision, device in rows():
         try:
             result = bench_live(
                 model,

@@ -90,14 +90,6 @@ def test_backend_agrees_with_torch(probe_model, name, precision, module):
 
 
 @pytest.mark.slow
-def test_compile_backend_agrees_and_is_cached(probe_model, tmp_path):
-    backend = build_backend(probe_model, "compile", "fp32", cache_dir=tmp_path)
-    parity = check_parity(backend, probe_model)
-    assert parity.ok and parity.max_abs_err_kpa <= 1e-4, str(parity)
-    again = build_backend(probe_model, "compile", "fp32", cache_dir=tmp_path)
-    assert again.path == backend.path and backend.path.is_file()
-
-
 def _incremental_matches_run(backend: Backend, model: PressureModel, frames: np.ndarray):
     """Stream frames through run_incremental (1 new frame per call, a jump of 3, a full
     refill, a stateless run in between) and compare each output with model.predict."""

@@ -92,7 +92,7 @@ def _backend_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--cache-dir",
         default="default",
-        help="cache for exports, compiled models and auto decisions "
+        help="cache for exports, quantized models and auto decisions "
         "(default ~/.cache/beadsight; 'none' disables)",
     )
 

@@ -3,7 +3,7 @@ runtimes, the exporter and the command line all read."""
 
 from __future__ import annotations
 
-BACKENDS = ("torch", "compile", "onnx", "openvino", "int8", "cuda")  # inference runtimes
+BACKENDS = ("torch", "onnx", "openvino", "int8", "cuda")  # inference runtimes
 PRECISIONS = ("fp32", "bf16")  # float runtime precisions ("auto" picks one)
 INT8 = "int8"  # the int8 runtime's only precision (OpenVINO after NNCF quantization)
 EXPORT_FORMATS = ("onnx", "openvino")  # exported model files

@@ -1,6 +1,6 @@
 """Where inference runs: CPU threads, the cache folder, and a key for this machine.
 
-Compiled packages and the auto-selection's timings hold only for the machine and
+Quantized models and the auto-selection's timings hold only for the machine and
 library versions they were made with; :func:`machine_key` names those.
 """
 
@@ -16,7 +16,7 @@ import torch
 
 
 def default_cache_dir() -> Path:
-    """``~/.cache/beadsight``: exported models, compiled packages, auto decisions."""
+    """``~/.cache/beadsight``: exported and quantized models, auto decisions."""
     return Path.home() / ".cache" / "beadsight"
 
 

@@ -252,9 +252,9 @@ class PressurePredictor(Closes):
         """Load ``checkpoint`` (a path, or an already loaded model) and build its backend.
 
         backend: "auto" (the fastest available backend that agrees with fp32 torch, see
-        :func:`beadsight.inference.select.select_backend`), "torch", "compile", "onnx",
+        :func:`beadsight.inference.select.select_backend`), "torch", "onnx",
         "openvino" or "cuda"; precision: "fp32", "bf16" or "auto"; device: for the
-        torch/compile/cuda backends. exported_model: an exported ``.onnx`` / OpenVINO
+        torch/cuda backends. exported_model: an exported ``.onnx`` / OpenVINO
         ``.xml`` file to run, refused unless it was exported from this checkpoint.
         cache_dir, threads: see :func:`beadsight.inference.select.create_backend`.
         settings: as for the constructor.

@@ -1,4 +1,4 @@
-"""Inference runtimes: one interface over torch, torch.compile, ONNX Runtime, OpenVINO, CUDA.
+"""Inference runtimes: one interface over torch, ONNX Runtime, OpenVINO, CUDA.
 
 Every runtime ("backend") runs the whole :class:`~beadsight.model.FramesToPressure`
 module (input handling included) and has the same numpy interface::
@@ -18,9 +18,6 @@ name       what runs                                                    precisio
 =========  ===========================================================  ==========
 torch      eager PyTorch under ``inference_mode``; keeps a ring of      fp32, bf16
            normalised frames so each frame is normalised once            (autocast)
-compile    AOTInductor: ``torch.export`` + inductor with freezing,       fp32
-           compiled once per checkpoint and machine and cached as a
-           ``.pt2`` package in ``cache_dir`` (first build: minutes)
 onnx       ONNX Runtime, CPU execution provider                          fp32
 openvino   OpenVINO on the CPU with an explicit                          fp32, bf16
            ``INFERENCE_PRECISION_HINT``, ``INFERENCE_NUM_THREADS`` and   (bf16 where
@@ -49,7 +46,6 @@ import numpy as np
 import torch
 
 from beadsight.checkpoint import PressureModel
-from beadsight.files import atomic_write
 from beadsight.inference.backend import (
     BACKENDS,
     PRECISIONS,
@@ -58,7 +54,7 @@ from beadsight.inference.backend import (
     BackendUnavailableError,
 )
 from beadsight.inference.export_format import model_fingerprint, write_onnx
-from beadsight.inference.machine import default_threads, machine_key
+from beadsight.inference.machine import default_threads
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +64,6 @@ __all__ = [  # the interface is re-exported: runtimes are used through it
     "Backend",
     "BackendError",
     "BackendUnavailableError",
-    "CompileBackend",
     "CudaGraphBackend",
     "OnnxBackend",
     "OpenVinoBackend",
@@ -164,52 +159,6 @@ class TorchBackend(Backend):
         x = self.module.stack_window(view, self._normalized_rest(rest))
         with self._autocast():
             return self._output(self.module.pressure(x))
-
-
-class CompileBackend(Backend):
-    """AOTInductor-compiled module (freezing on), cached on disk per checkpoint+machine."""
-
-    name = "compile"
-
-    def __init__(
-        self,
-        model: PressureModel,
-        precision: str = "fp32",
-        cache_dir: Path | None = None,
-        threads: int | None = None,
-    ):
-        super().__init__(model, precision)
-        if precision != "fp32":
-            raise BackendUnavailableError("compile: only fp32 is supported; use openvino for bf16")
-        if threads:
-            torch.set_num_threads(int(threads))
-        name = f"{model_fingerprint(model)[:24]}-{machine_key()}.pt2"
-        folder = Path(cache_dir) if cache_dir else Path(tempfile.mkdtemp(prefix="beadsight-"))
-        path = folder / "aoti" / name
-        if not path.is_file():
-            self._compile(model, path)
-        else:
-            log.info("compile: loading cached %s", path)
-        self._fn = torch._inductor.aoti_load_package(str(path))
-        self.path = path
-
-    def _compile(self, model: PressureModel, path: Path) -> None:
-        import torch._inductor.config as inductor_config
-
-        log.info("compile: building %s (AOTInductor; takes a while the first time)", path)
-        module = copy.deepcopy(model.module).to("cpu").eval()
-        example = torch.zeros(self._shape, dtype=torch.uint8)
-        with torch.no_grad():
-            program = torch.export.export(module, (example,))
-        with tempfile.TemporaryDirectory(prefix="beadsight-aoti-") as tmp:
-            built = Path(tmp) / path.name
-            with inductor_config.patch({"freezing": True}):
-                torch._inductor.aoti_compile_and_package(program, package_path=str(built))
-            atomic_write(path, lambda f: f.write(built.read_bytes()))
-
-    @torch.inference_mode()
-    def _run(self, window: np.ndarray) -> np.ndarray:
-        return self._fn(torch.from_numpy(window)).float().numpy().copy()
 
 
 def _open_onnx_session(path: Path, threads: int):

@@ -11,8 +11,7 @@ bf16 candidate must stay within half the bound
 reduced-precision error varies with the input more than fp32 rounding does. The
 decision is cached per checkpoint fingerprint and machine in
 ``cache_dir/backend-choice.json``; on a cache hit only the chosen backend is built
-(and parity-checked again). ``compile`` is not an auto candidate while OpenVINO or
-ONNX Runtime is installed (its first build takes minutes); name it explicitly.
+(and parity-checked again).
 
 The ``int8`` runtime (:mod:`beadsight.inference.int8`) is judged on the paper's metrics
 instead (:mod:`beadsight.inference.metric_parity`: every metric within 2 % relative of
@@ -57,7 +56,6 @@ from beadsight.inference.runtimes import (
     PRECISIONS,
     Backend,
     BackendUnavailableError,
-    CompileBackend,
     CudaGraphBackend,
     OnnxBackend,
     OpenVinoBackend,
@@ -68,7 +66,7 @@ log = logging.getLogger(__name__)
 
 INT8_CANDIDATE = ("int8", INT8)  # tried first on CPUs where openvino and nncf import
 CPU_AUTO_ORDER = (("openvino", "bf16"), ("openvino", "fp32"), ("onnx", "fp32"), ("torch", "fp32"))
-CPU_FALLBACK_ORDER = (("compile", "fp32"), ("torch", "fp32"))  # without OpenVINO/ONNX Runtime
+CPU_FALLBACK_ORDER = (("torch", "fp32"),)  # without OpenVINO/ONNX Runtime
 CUDA_AUTO_ORDER = (("cuda", "bf16"), ("cuda", "fp32"))
 AUTO_WARMUP_RUNS = 2  # untimed runs before timing a candidate
 AUTO_TIMED_RUNS = 5  # timed runs per candidate; the median decides
@@ -145,8 +143,6 @@ def build_backend(
         return Int8Backend(model, INT8, cache_dir=cache_dir, threads=threads)
     if name == "torch":
         return TorchBackend(model, precision, device=device, threads=threads)
-    if name == "compile":
-        return CompileBackend(model, precision, cache_dir=cache_dir, threads=threads)
     if name == "onnx":
         return OnnxBackend(model, precision, exported_model, cache_dir, threads)
     if name == "openvino":

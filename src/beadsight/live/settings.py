@@ -30,9 +30,9 @@ LIVE_PREDICTOR = PredictorSettings(initial_rest="wait")
 class LiveSettings:
     """Settings of live sensing (everything but the checkpoint and the source)."""
 
-    backend: str = "auto"  # auto | torch | compile | onnx | openvino | cuda
+    backend: str = "auto"  # auto | torch | onnx | openvino | cuda
     precision: str = "auto"  # auto | fp32 | bf16
-    device: str | None = None  # torch device of the torch/compile/cuda backends
+    device: str | None = None  # torch device of the torch/cuda backends
     exported_model: str | None = None  # an exported .onnx / OpenVINO .xml of the checkpoint
     threads: int | None = None  # backend CPU threads (None: $OMP_NUM_THREADS, else all cores)
     preprocess: str = "auto"  # auto | none | reference | reference-linear | lens .json
