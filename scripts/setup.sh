@@ -29,8 +29,11 @@ links=${UV_FIND_LINKS:-${PIP_FIND_LINKS:-}}
 if [ -z "$links" ] && found=$("$PY" -m pip config get global.find-links 2>/dev/null); then
   links=$found
 fi
+# --compile-bytecode (pip's default, not uv's): where PYTHONDONTWRITEBYTECODE is set, every
+# process would compile torch & co. from source on each import (3.9 s instead of 2.1 s for
+# `import torch` alone); compiled here once, in parallel, the test command ran 60 s faster.
 uv_install() {
-  UV_FIND_LINKS="$links" .venv/bin/uv pip install -q --python .venv/bin/python "$@"
+  UV_FIND_LINKS="$links" .venv/bin/uv pip install -q --compile-bytecode --python .venv/bin/python "$@"
 }
 
 .venv/bin/python -c "import torch" 2>/dev/null || uv_install "$TORCH_SPEC"
@@ -39,7 +42,7 @@ uv_install pip -e ".[$extras]"
 if [ "$extras" = dev ]; then  # OctoPrint's virtual printer, an independent Marlin peer for the
   # tests; OctoPrint pins many packages, so it gets a venv of its own (uv: seconds, not minutes)
   [ -x .venv-octoprint/bin/python ] || .venv/bin/uv venv -q -p "$PY" .venv-octoprint
-  .venv/bin/uv pip install -q --python .venv-octoprint/bin/python "OctoPrint==1.11.8"
+  .venv/bin/uv pip install -q --compile-bytecode --python .venv-octoprint/bin/python "OctoPrint==1.11.8"
 fi
 if [ "$extras" = dev ] && ! command -v chromium >/dev/null 2>&1; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
