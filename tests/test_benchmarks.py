@@ -79,7 +79,7 @@ def test_live_offline_scores_both_rows_on_a_simulated_dataset(tmp_path, capsys):
     from helpers.live import tiny_model
 
     data = tmp_path / "sim.h5"
-    simulate = ["simulate", "--presses", "2", "--image-size", "64", "--out", str(data)]
+    simulate = ["simulate", "--presses", "1", "--image-size", "64", "--out", str(data)]
     beadsight_ok(*simulate, "--no-progress")
     checkpoint = tiny_model().save(tmp_path / "tiny.pt")
     argv = [str(data), "--checkpoint", str(checkpoint), "--work", str(tmp_path / "work")]

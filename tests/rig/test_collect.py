@@ -445,13 +445,13 @@ def test_end_to_end_collect_process_train_evaluate(tmp_path):
     # 3x real time (90 fps of host time): at 8x a loaded 2-core machine drops so many frames
     # that no training window of consecutive frames ends in contact
     beadsight_ok(
-        *CLI[3:], "--presses", "5", "--image-size", "64", "--time-scale", "3", "--out", raw
+        *CLI[3:], "--presses", "3", "--image-size", "64", "--time-scale", "3", "--out", raw
     )
     beadsight_ok(
         "process", raw, "--out", data, "--preprocess", "none", "--image-size", "64", "--no-progress"
     )
     with open_dataset(data) as ds:
-        assert ds.num_presses == 5
+        assert ds.num_presses == 3
     beadsight_ok(
         *("train", "--data", data, "--out", runs, "--steps", "2", "--width", "8"),
         *("--batch-size", "4", "--frames", "5", "--threads", "1", "--no-progress"),
