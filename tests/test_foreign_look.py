@@ -18,7 +18,7 @@ SEEDS = (100, 101)
 COUNTS = (0, 3)
 TINY = [
     "--families", "grey_ring", "--pouches", "2", "--counts", "0", "3", "--test-presses", "1", "--test-frames", "4",
-    "--budget-min", "0.02", "--device", "cpu",
+    "--budget-min", "0.01", "--device", "cpu",
 ]  # fmt: skip
 
 
@@ -46,7 +46,7 @@ def test_foreign_look_measures_every_point_and_resumes(tmp_path, monkeypatch, ca
     record = json.loads((out / "foreign_look.json").read_text())
     assert Path(summary["json"]) == out / "foreign_look.json"
     assert (out / "foreign_look.png").stat().st_size > 10_000
-    assert record["settings"]["budget_min"] == 0.02 and record["cpu"]
+    assert record["settings"]["budget_min"] == 0.01 and record["cpu"]
     got = {(p["family"], p["seed"]) for p in record["pouches"]}
     assert got == {(f, s) for f in FAMILIES for s in SEEDS}
     for p in record["pouches"]:
@@ -102,7 +102,7 @@ def test_foreign_look_measures_every_point_and_resumes(tmp_path, monkeypatch, ca
     from beadsight.errors import ConfigError
 
     args = [*TINY, "--out", str(out)]
-    with pytest.raises(ConfigError, match="measured with budget_min 0.02, this run asks 0.1"):
+    with pytest.raises(ConfigError, match="measured with budget_min 0.01, this run asks 0.1"):
         foreign_look.main([*args, "--budget-min", "0.1"])
     with pytest.raises(ConfigError, match="use another --out for larger counts"):
         foreign_look.main([*args, "--counts", "5"])
