@@ -31,7 +31,7 @@ if [ -z "$links" ] && found=$("$PY" -m pip config get global.find-links 2>/dev/n
 fi
 # --compile-bytecode (pip's default, not uv's): where PYTHONDONTWRITEBYTECODE is set, every
 # process would compile torch & co. from source on each import (3.9 s instead of 2.1 s for
-# `import torch` alone); compiled here once, in parallel, the test command ran 60 s faster.
+# `import torch` alone); compiled here once, in parallel, the test command ran ~50 s faster.
 uv_install() {
   UV_FIND_LINKS="$links" .venv/bin/uv pip install -q --compile-bytecode --python .venv/bin/python "$@"
 }

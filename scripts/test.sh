@@ -11,8 +11,8 @@ cd "$(dirname "$0")/.."
 # pytest each test module's rewritten asserts) from source again: 3.9 s instead of 2.1 s for
 # `import torch` alone. The files go to __pycache__ folders that git ignores.
 unset PYTHONDONTWRITEBYTECODE
-# One worker more than cores: the live, browser and peer tests wait on real time for a
-# quarter of theirs, and the extra worker fills those gaps (each worker's runtimes get one
+# One worker more than cores: the live, browser and peer tests spend about a fifth of the
+# suite's worker time waiting on real time, and the extra worker fills those gaps (each worker's runtimes get one
 # thread, tests/conftest.py).
 workers=$(( $(.venv/bin/python -c "import os; print(len(os.sched_getaffinity(0)))") + 1 ))
 .venv/bin/python -m pytest -q -rs -n "$workers" --durations=20 "$@"
