@@ -10,7 +10,7 @@ with p99 <= 2 ms (CUDA graphs).
 Each row runs ``beadsight.live.bench.bench_live`` (simulated frames through
 ``PressurePredictor.update``): max throughput, sustained at --rate Hz, and the max
 error vs fp32 torch in % of the peak. Backends that are not installed or not
-supported here are listed as skipped.
+supported here are listed as skipped; the CPU's bf16 rows appear only where bf16 is native.
 """
 
 from __future__ import annotations
@@ -35,11 +35,11 @@ GPU_TARGET = {"hz": 1000.0, "p99_ms": 2.0}
 
 
 def rows() -> list[tuple[str, str, str | None]]:
-    """(backend, precision, device) rows to measure here."""
-    out = [("torch", "fp32", "cpu"), ("torch", "bf16", "cpu")]
-    out += [("onnx", "fp32", None), ("openvino", "fp32", None)]
+    """(backend, precision, device) rows to measure here. bf16 on the CPU only where it is
+    native: emulated, torch bf16 took 13.6 s a reading at the reference size (AVX2 only)."""
+    out = [("torch", "fp32", "cpu"), ("onnx", "fp32", None), ("openvino", "fp32", None)]
     if openvino_supports_bf16():
-        out.append(("openvino", "bf16", None))
+        out += [("torch", "bf16", "cpu"), ("openvino", "bf16", None)]
     if torch.cuda.is_available():
         out += [("cuda", "fp32", "cuda"), ("cuda", "bf16", "cuda")]
     return out
