@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from beadsight.geometry import mm_to_px
-from beadsight.sim import PouchSimulator, SimConfig
+from beadsight.sim import PouchSimulator, SimConfig, render
 from beadsight.sim.fisheye import raw_to_sensor_maps
 from beadsight.sim.pouch import PouchView
 from beadsight.sim.render import SensorRenderer
@@ -178,3 +178,36 @@ def test_session_can_yield_raw_frames():
     frames = list(itertools.islice(SimulatedSession(cfg, seed=0, raw=True), 2))
     assert all(f.raw_bgr.shape == (1024, 1280, 3) for f in frames)
     assert frames[0].frame_rgb.shape == (32, 32, 3)
+
+
+def test_sprites_are_shared_by_look_and_kept_within_the_byte_budget(monkeypatch):
+    """Renderers of one look and size share their sprites (and draw the same frames as a
+    renderer with none cached); past the budget the look used longest ago goes first, then
+    the oldest quarter of the look being drawn."""
+    made = []
+    make = SensorRenderer._make_sprite
+    monkeypatch.setattr(SensorRenderer, "_make_sprite", lambda r, k: made.append(k) or make(r, k))
+    config = SimConfig(image_size_px=64, flicker=0.0)
+    render.SPRITES.sprites((config, 64)).clear()
+    frame = pressed(config, 4, (1.0, 0.0), 1.5).render()
+    assert made and len(render.SPRITES.sprites((config, 64))) == len(made)
+    first = len(made)
+    assert np.array_equal(pressed(config, 4, (1.0, 0.0), 1.5).render(), frame)
+    assert len(made) == first  # the second renderer made none
+    render.SPRITES.sprites((config, 64)).clear()
+    assert np.array_equal(pressed(config, 4, (1.0, 0.0), 1.5).render(), frame)
+    assert len(made) == 2 * first
+
+    one = (np.zeros((10, 10, 3), np.float32), np.zeros((10, 10, 3), np.float32))  # 2400 B
+    sprites = render.SpriteCache(max_bytes=10 * 2400)
+    a, b = (SimConfig(image_size_px=32), 32), (SimConfig(image_size_px=48), 48)
+    for key in range(6):
+        sprites.add(a, key, one)
+    assert len(sprites.sprites(b)) == 0  # b is now the look used last
+    for key in range(5):
+        sprites.add(b, key, one)
+    assert len(sprites.sprites(b)) == 5 and len(sprites.sprites(a)) == 0  # a went first
+    for key in range(5, 11):  # b alone over the budget: its oldest quarter goes
+        sprites.add(b, key, one)
+    kept = sprites.sprites(b)
+    assert sorted(kept) == list(range(2, 11))  # 11 over a budget of 10: 2 (a quarter) went

@@ -30,6 +30,8 @@ renderer never disturbs the mechanics' random stream.
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 
 import cv2
 import numpy as np
@@ -45,7 +47,7 @@ FLAT_LEVELS = 7  # flatness levels 0..1
 ZONES = 5  # highlight arrangement quantised on a ZONES x ZONES grid over the image
 PHASES = 4  # sub-pixel positions per pixel, per axis (frames up to FINE_PHASE_MAX_PX)
 FINE_PHASE_MAX_PX = 320  # larger images (the one behind raw frames) use whole-pixel positions
-SPRITE_CACHE_BYTES = 96 * 2**20  # the oldest quarter of the sprites is dropped past this
+SPRITE_CACHE_BYTES = 96 * 2**20  # sprites kept, all looks together (see SpriteCache)
 _LOG_STEP = math.log1p(RADIUS_STEP)
 
 # --- appearance (radiance units: 0..255 under full illumination) --------------------
@@ -69,6 +71,62 @@ MOTTLE_SCALE_MM = 3.0
 CLARITY_CORE = 0.8  # a clear bead's transparent core: opacity recovers over the outer 20 %
 SPECKLE_SCALE_MM = 0.5  # grain of the "speckle" background print
 NOISE_TILES = 2  # pre-generated noise fields, sampled at random offsets
+
+
+Sprite = tuple[np.ndarray, np.ndarray]  # (1 - alpha, premultiplied colour), (h, h, 3) f32
+
+
+class SpriteCache:
+    """Sprites by look and frame size, shared by every renderer of that look in the process.
+
+    A sprite is a pure function of the look (a :class:`SimConfig`), the frame size and its
+    key, while a session makes a new renderer for every pouch (and a test or a replay for
+    every session): a 2-press session at 64 px spent a third of its time making sprites.
+    Past :data:`SPRITE_CACHE_BYTES` the looks used longest ago are dropped first, then the
+    oldest quarter of the sprites of the look being drawn.
+    """
+
+    def __init__(self, max_bytes: int = SPRITE_CACHE_BYTES):
+        self.max_bytes = max_bytes
+        self._looks: OrderedDict[tuple[SimConfig, int], dict[int, Sprite]] = OrderedDict()
+        self._look_bytes: dict[tuple[SimConfig, int], int] = {}
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def sprites(self, look: tuple[SimConfig, int]) -> dict[int, Sprite]:
+        """The look's sprites by key (read-only for the caller; add with :meth:`add`)."""
+        with self._lock:
+            sprites = self._looks.get(look)
+            if sprites is None:
+                sprites = self._looks[look] = {}
+                self._look_bytes[look] = 0
+            self._looks.move_to_end(look)
+            return sprites
+
+    def add(self, look: tuple[SimConfig, int], key: int, sprite: Sprite) -> None:
+        size = sprite[0].nbytes + sprite[1].nbytes
+        with self._lock:
+            if look not in self._looks:  # dropped since the caller's sprites() call
+                self._looks[look], self._look_bytes[look] = {}, 0
+            sprites = self._looks[look]
+            if key in sprites:
+                return
+            sprites[key] = sprite
+            self._look_bytes[look] += size
+            self._bytes += size
+            while self._bytes > self.max_bytes:
+                older = next((k for k in self._looks if k != look), None)
+                if older is not None:
+                    del self._looks[older]
+                    self._bytes -= self._look_bytes.pop(older)
+                    continue
+                for old in list(sprites)[: max(len(sprites) // 4, 1)]:  # oldest first
+                    a, b = sprites.pop(old)
+                    self._look_bytes[look] -= a.nbytes + b.nbytes
+                    self._bytes -= a.nbytes + b.nbytes
+
+
+SPRITES = SpriteCache()
 
 
 class SensorRenderer:
@@ -110,8 +168,7 @@ class SensorRenderer:
         self._saturation = saturation_matrix(config.camera_saturation)
         tints = np.asarray(config.bead_tints_rgb, np.float32)
         self._tints = tints
-        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._cache_bytes = 0
+        self._look = (config, self.size)  # its sprites' key in SPRITES
         self._max_rq = int(math.ceil(math.log(self.size) / _LOG_STEP)) + 1
         self.phases = PHASES if self.size <= FINE_PHASE_MAX_PX else 1
         # Half-size of the sprite for each quantised radius.
@@ -195,19 +252,12 @@ class SensorRenderer:
         )
         return tuple(c[visible].tolist() for c in cols)
 
-    def _sprite(self, key: int) -> tuple[np.ndarray, np.ndarray]:
-        sprite = self._cache.get(key)
-        if sprite is None:
-            if self._cache_bytes > SPRITE_CACHE_BYTES:
-                for old in list(self._cache)[: len(self._cache) // 4]:  # oldest first
-                    a, b = self._cache.pop(old)
-                    self._cache_bytes -= a.nbytes + b.nbytes
-            sprite = self._make_sprite(key)
-            self._cache[key] = sprite
-            self._cache_bytes += sprite[0].nbytes + sprite[1].nbytes
+    def _add_sprite(self, key: int) -> Sprite:
+        sprite = self._make_sprite(key)
+        SPRITES.add(self._look, key, sprite)
         return sprite
 
-    def _make_sprite(self, key: int) -> tuple[np.ndarray, np.ndarray]:
+    def _make_sprite(self, key: int) -> Sprite:
         """(1 - alpha) (h, h, 3) f32 and premultiplied colour (h, h, 3) f32, radiance units."""
         key, pc = divmod(key, PHASES)
         key, pr = divmod(key, PHASES)
@@ -243,7 +293,7 @@ class SensorRenderer:
         """Radiance image (S, S, 3) float32 before illumination (a reused buffer)."""
         out = self._scratch
         np.copyto(out, self._background)
-        cache, make = self._cache, self._sprite
+        cache, make = SPRITES.sprites(self._look), self._add_sprite
         multiply, add = cv2.multiply, cv2.add
         for key, r0, r1, c0, c1, sr0, sr1, sc0, sc1 in zip(*self._keys(view), strict=True):
             sprite = cache.get(key)
