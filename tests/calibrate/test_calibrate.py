@@ -78,11 +78,14 @@ def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     page = (out / "report.html").read_text()
     for text in ("base model, zero-shot", "zero-press", "Learning curve", "paper"):
         assert text in page
-    # model.pt is a normal checkpoint whose stored split evaluate reuses
+    # model.pt is a normal checkpoint whose stored split evaluate reuses (on the frames
+    # calibrate had time to score: as many as its budget left, spread evenly)
     model = load_checkpoint(out / "model.pt")
     assert model.meta.provenance["source"] == "beadsight calibrate"
     again = evaluate(
-        out / "model.pt", data, EvaluateConfig(split="test", progress=False, plots=False)
+        out / "model.pt",
+        data,
+        EvaluateConfig(split="test", max_frames=metrics["max_frames"], progress=False, plots=False),
     )
     assert again["split_source"] == "checkpoint" and again["frames"] == metrics["frames"]
     assert again["mae_kpa"] == pytest.approx(metrics["mae_kpa"], rel=1e-5)
