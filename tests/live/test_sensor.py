@@ -28,6 +28,7 @@ from helpers.live import (
 )
 
 from beadsight.cli import main
+from beadsight.devices.clock import SteppedClock
 from beadsight.devices.virtual import PlaybackCamera
 from beadsight.geometry import centre_of_pressure_mm, total_force_n
 from beadsight.live.config import LiveRunConfig
@@ -101,9 +102,18 @@ def test_paced_source_runs_at_camera_rate_and_reports_latency(model, presses):
 def test_loop_slower_than_camera_keeps_windows_consecutive(model, presses):
     """At 150 fps the camera outruns inference: frames that arrive meanwhile enter the
     window without readings of their own, so each reading still covers T consecutive
-    frames (no reset, no stale window)."""
+    frames (no reset, no stale window). The camera runs on a stepped clock (a frame every
+    1/150 s of its time, stamped with that time, about 1000 a second of host time) and its
+    queue holds the whole clip, so a loaded machine that stalls the sensing thread changes
+    when frames arrive but not which frames or their stamps."""
     frames, force = presses
-    source = PlaybackCamera(lambda: zip(frames, force, strict=True), fps=150, name="fast")
+    source = PlaybackCamera(
+        lambda: zip(frames, force, strict=True),
+        fps=150,
+        name="fast",
+        clock=SteppedClock(),
+        queue_frames=len(frames),
+    )
     updates, stats = [], []
 
     def on_update(update):

@@ -418,6 +418,7 @@ class LiveSensor:
 
     def _sense(self) -> None:
         source, window = self.source, self.model.span
+        # indices start at 0: frames captured before the first one read count as skipped
         batch, last_index = [self._first], -1
         self._first = None
         while not self._stop.is_set():
@@ -429,7 +430,7 @@ class LiveSensor:
                     return
                 except CameraDisconnectedError as e:
                     first = self._reconnect(e)
-                    batch, last_index = ([first] if first is not None else []), -1
+                    batch, last_index = ([first] if first is not None else []), None
                     continue
                 except DeviceTimeoutError:
                     self._set_status(
@@ -437,7 +438,7 @@ class LiveSensor:
                         f"no frame from {source.name} for {self._no_signal_after_s:g} s",
                     )
                     continue
-            skipped = max(batch[0].index - last_index - 1, 0) if last_index >= 0 else 0
+            skipped = max(batch[0].index - last_index - 1, 0) if last_index is not None else 0
             self._meter.add_frames(time.monotonic(), len(batch), skipped)
             for frame in batch[:-1]:  # fell behind the camera: keep the window consecutive
                 self._add(frame)
