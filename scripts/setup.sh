@@ -17,6 +17,7 @@ extras=all
 # and without its recommends (avahi, cups, GTK, perl...), which headless use does not need:
 # 25 packages instead of 115, 10 s instead of 20 s here.
 apt_pid=
+trap wait EXIT  # a failed step still lets the background jobs finish (no apt left holding dpkg's lock)
 if [ "$extras" = dev ] && ! command -v chromium >/dev/null 2>&1; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     apt_log=$(mktemp)

@@ -12,8 +12,8 @@ cd "$(dirname "$0")/.."
 # `import torch` alone. The files go to __pycache__ folders that git ignores.
 unset PYTHONDONTWRITEBYTECODE
 # One worker more than cores: the live, browser and peer tests spend about a fifth of the
-# suite's worker time waiting on real time, and the extra worker fills those gaps (each worker's runtimes get one
-# thread, tests/conftest.py).
+# suite's worker time waiting on real time, and the extra worker fills those gaps (each
+# worker's runtimes get one thread, tests/conftest.py).
 workers=$(( $(.venv/bin/python -c "import os; print(len(os.sched_getaffinity(0)))") + 1 ))
 # --dist worksteal: a worker that runs out takes half of the busiest one's queue. With the
 # default (load), the last two tests queued on one worker were the two slowest training tests
