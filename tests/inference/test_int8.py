@@ -124,3 +124,23 @@ def test_auto_drops_an_int8_candidate_that_fails_the_gate(probe_model, tmp_path)
         assert not list(tmp_path.glob("int8/*.xml"))  # refused before anything was quantized
     finally:
         chosen.close()
+
+
+def test_small_simulated_sessions_are_kept_read_only_and_large_ones_are_not(monkeypatch):
+    import beadsight.inference.metric_parity as mp
+
+    monkeypatch.setattr(mp, "_sessions", type(mp._sessions)())
+    first = mp._simulated_session(32, 77, 1)
+    assert mp._simulated_session(32, 77, 1) is first  # simulated once
+    assert not first.frames.flags.writeable and not first.force_n.flags.writeable
+    assert first.frames.shape[1:] == (32, 32, 3) and first.contact.any()
+    other = mp._simulated_session(32, 78, 1)
+    assert other is not first and list(mp._sessions) == [(32, 77, 1), (32, 78, 1)]
+    monkeypatch.setattr(mp, "SESSION_CACHE_BYTES", first.frames.nbytes + other.frames.nbytes - 1)
+    mp._simulated_session(32, 77, 1)  # the most recent now: the other one is dropped first
+    mp._simulated_session(32, 79, 1)
+    assert (32, 78, 1) not in mp._sessions and list(mp._sessions)[-1] == (32, 79, 1)
+    assert sum(s.frames.nbytes for s in mp._sessions.values()) <= mp.SESSION_CACHE_BYTES
+    monkeypatch.setattr(mp, "SESSION_CACHE_BYTES", 1)
+    mp._simulated_session(32, 80, 1)
+    assert not mp._sessions  # too large alone: simulated, returned, not kept

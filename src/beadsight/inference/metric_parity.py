@@ -14,6 +14,8 @@ barely move whatever its runtime does, so they cannot vouch for a quantized copy
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,6 +81,51 @@ def _pick_ends(
     return np.unique(np.concatenate(picks)) if picks else np.zeros(0, np.int64)
 
 
+@dataclass(frozen=True)
+class _Session:
+    """A simulated session's frames and truth, read-only (shared by every caller)."""
+
+    frames: np.ndarray  # (N, S, S, 3) uint8 RGB
+    press: np.ndarray  # (N,) press index
+    contact: np.ndarray  # (N,) finger below the pouch surface
+    force_n: np.ndarray  # (N,) true force
+    finger_xy_mm: np.ndarray  # (N, 2)
+
+
+# Sessions of small models, kept for the process: auto selection, `bench live --tiers` and
+# the int8 gate each ask for the same held-out (and calibration) presses, and at 64 px a
+# session of 4 presses takes seconds to simulate and 13 MB to keep. A reference-size one
+# (256 px: over 200 MB) is simulated again each time rather than held.
+SESSION_CACHE_BYTES = 64 * 2**20
+_sessions: OrderedDict[tuple[int, int, int], _Session] = OrderedDict()
+_sessions_lock = threading.Lock()
+
+
+def _simulated_session(image_size: int, seed: int, presses: int) -> _Session:
+    key = (image_size, seed, presses)
+    with _sessions_lock:
+        if key in _sessions:
+            _sessions.move_to_end(key)
+            return _sessions[key]
+    from beadsight.sim import SimConfig, SimulatedSession
+
+    records = list(SimulatedSession(SimConfig(image_size_px=image_size), seed, presses=presses))
+    session = _Session(
+        frames=np.stack([r.frame_rgb for r in records]),
+        press=np.array([r.press_index for r in records]),
+        contact=np.array([r.finger_depth_mm > 0 for r in records]),
+        force_n=np.array([r.true_force_n for r in records], np.float64),
+        finger_xy_mm=np.array([r.finger_xy_mm for r in records], np.float64),
+    )
+    for array in vars(session).values():
+        array.flags.writeable = False
+    with _sessions_lock:
+        _sessions[key] = session
+        while sum(s.frames.nbytes for s in _sessions.values()) > SESSION_CACHE_BYTES:
+            _sessions.popitem(last=False)  # the oldest, or this one if it alone is too big
+    return session
+
+
 def simulated_presses(
     model: PressureModel,
     presses: int = HELDOUT_PRESSES,
@@ -93,20 +140,14 @@ def simulated_presses(
     :data:`~beadsight.data.rest.REST_FRAMES` frames (the pouch unloaded, as live and
     ``predict`` take it at a stream's start).
     """
-    from beadsight.sim import SimConfig, SimulatedSession
-
-    config = SimConfig(image_size_px=model.image_size)
-    records = list(SimulatedSession(config, seed, presses=presses))
-    frames = np.stack([r.frame_rgb for r in records])  # (N, S, S, 3)
-    press = np.array([r.press_index for r in records])
-    contact = np.array([r.finger_depth_mm > 0 for r in records])
-    ends = _pick_ends(press, contact, model.span, windows_per_press, contact_share)
-    rest = average_rest(frames[:REST_FRAMES]) if model.rest else None
+    session = _simulated_session(model.image_size, seed, presses)
+    ends = _pick_ends(session.press, session.contact, model.span, windows_per_press, contact_share)
+    rest = average_rest(session.frames[:REST_FRAMES]) if model.rest else None
     return SimulatedPresses(
-        inputs=stream_windows(frames, ends, model.span, rest),
-        force_n=np.array([records[k].true_force_n for k in ends], np.float64),
-        position_mm=np.stack([records[k].finger_xy_mm for k in ends]).astype(np.float64),
-        contact=contact[ends],
+        inputs=stream_windows(session.frames, ends, model.span, rest),
+        force_n=session.force_n[ends],
+        position_mm=session.finger_xy_mm[ends],
+        contact=session.contact[ends],
         seed=seed,
     )
 
