@@ -11,6 +11,7 @@ and an order that only holds at run time would not say where a concept lives).
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -51,13 +52,21 @@ ORDER = (
 )
 
 
-def _module_name(path: Path) -> str:
-    parts = path.relative_to(SRC).with_suffix("").parts
+def _module_name(path: Path, src: Path) -> str:
+    parts = path.relative_to(src).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
 def _parsed() -> dict[str, tuple[Path, ast.Module]]:
-    return {_module_name(p): (p, ast.parse(p.read_text())) for p in sorted(PACKAGE.rglob("*.py"))}
+    return _parse(SRC, PACKAGE)
+
+
+@functools.cache
+def _parse(src: Path, package: Path) -> dict[str, tuple[Path, ast.Module]]:
+    """Every module of ``package`` parsed, once per process (a second each time otherwise)."""
+    return {
+        _module_name(p, src): (p, ast.parse(p.read_text())) for p in sorted(package.rglob("*.py"))
+    }
 
 
 def long_modules() -> list[tuple[int, str]]:
@@ -97,7 +106,12 @@ def import_graph() -> dict[str, set[str]]:
     ``__init__`` re-exports it, eagerly or lazily), or of P itself if P defines it.
     Python runs a package's ``__init__`` before any of its modules; that edge is left out,
     as it says nothing about which concept needs which."""
-    parsed = _parsed()
+    return {name: set(targets) for name, targets in _graph(SRC, PACKAGE).items()}
+
+
+@functools.cache
+def _graph(src: Path, package: Path) -> dict[str, set[str]]:
+    parsed = _parse(src, package)
     packages = {name for name, (path, _) in parsed.items() if path.name == "__init__.py"}
     exports = {name: _init_names(parsed[name][1]) for name in packages}
     graph: dict[str, set[str]] = {}
