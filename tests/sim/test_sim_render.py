@@ -188,13 +188,13 @@ def test_sprites_are_shared_by_look_and_kept_within_the_byte_budget(monkeypatch)
     make = SensorRenderer._make_sprite
     monkeypatch.setattr(SensorRenderer, "_make_sprite", lambda r, k: made.append(k) or make(r, k))
     config = SimConfig(image_size_px=64, flicker=0.0)
-    render.SPRITES.sprites((config, 64)).clear()
+    monkeypatch.setattr(render, "SPRITES", render.SpriteCache())  # the process's stays intact
     frame = pressed(config, 4, (1.0, 0.0), 1.5).render()
     assert made and len(render.SPRITES.sprites((config, 64))) == len(made)
     first = len(made)
     assert np.array_equal(pressed(config, 4, (1.0, 0.0), 1.5).render(), frame)
     assert len(made) == first  # the second renderer made none
-    render.SPRITES.sprites((config, 64)).clear()
+    monkeypatch.setattr(render, "SPRITES", render.SpriteCache())
     assert np.array_equal(pressed(config, 4, (1.0, 0.0), 1.5).render(), frame)
     assert len(made) == 2 * first
 
