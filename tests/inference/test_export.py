@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import subprocess
 import sys
@@ -173,6 +174,33 @@ def test_cli_export(checkpoint, tmp_path, capsys):
         == 1
     )
     assert "nope.pt" in capsys.readouterr().err
+
+
+def test_openvino_export_sends_no_telemetry_and_writes_nothing_home(checkpoint, tmp_path):
+    """OpenVINO's converter (``convert_model``) reports usage to Google Analytics and
+    writes ``~/intel`` unless a consent file or CI=true says no. ``beadsight export``,
+    run as a user runs it (a fresh process, no CI variable), must do neither."""
+    home = tmp_path / "home"
+    home.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("CI", "TF_BUILD", "JENKINS_URL")}
+    code = (
+        "import sys\n"
+        "from beadsight.cli import main\n"
+        f"code = main(['export', '--checkpoint', {str(checkpoint)!r}, '--format', 'openvino',"
+        f" '--out', {str(tmp_path / 'ov' / 'm.xml')!r}])\n"
+        "assert sys.modules.get('openvino_telemetry') is None, 'telemetry loaded'\n"
+        "sys.exit(code)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**env, "HOME": str(home)},
+    )
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "ov" / "m.bin").is_file()
+    assert not list(home.iterdir())  # no ~/intel/openvino_ga_cid, no stats
 
 
 def test_cli_bench_live_json(checkpoint, tmp_path, capsys):

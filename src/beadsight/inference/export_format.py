@@ -37,6 +37,7 @@ from beadsight import __version__
 from beadsight.checkpoint import PressureModel
 from beadsight.errors import BeadSightError
 from beadsight.files import atomic_write, atomic_write_bytes
+from beadsight.inference.machine import import_openvino
 
 ONNX_OPSET = 17
 INPUT_NAME = "frames"
@@ -51,9 +52,10 @@ class ExportError(BeadSightError):
 
 
 def require(module: str, extra: str):
-    """Import an optional dependency, or say which extra installs it."""
+    """Import an optional dependency, or say which extra installs it (openvino through
+    :func:`~beadsight.inference.machine.import_openvino`)."""
     try:
-        return importlib.import_module(module)
+        return import_openvino() if module == "openvino" else importlib.import_module(module)
     except ImportError:
         raise BeadSightError(
             f"{module} is not installed; install it with `pip install beadsight[{extra}]`"
@@ -172,7 +174,11 @@ def write_onnx(model: PressureModel, path: str | Path, precision: str = "fp32") 
 def write_openvino(model: PressureModel, path: str | Path, precision: str = "fp32") -> Path:
     """Export to OpenVINO IR (``path`` = the ``.xml``; a ``.bin`` is written beside it).
 
-    Both files are written atomically, the ``.bin`` first.
+    Both files are written atomically, the ``.bin`` first. The ONNX file is read by
+    OpenVINO's ONNX frontend (``Core.read_model``), not its converter (``convert_model``):
+    the converter sends usage telemetry to Google Analytics unless a consent file says
+    otherwise, and writes ``~/intel``. The IR holds the graph as ONNX gives it;
+    ``compile_model`` runs the same graph optimisations at load.
     """
     ov = require("openvino", "openvino")
     path = Path(path)
@@ -181,7 +187,7 @@ def write_openvino(model: PressureModel, path: str | Path, precision: str = "fp3
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=".beadsight-") as tmp:
         onnx_path = write_onnx(model, Path(tmp) / "model.onnx", precision)
-        ov_model = ov.convert_model(str(onnx_path))
+        ov_model = ov.Core().read_model(str(onnx_path))
         for key, value in exported_metadata(model, precision).items():
             ov_model.set_rt_info(value, [META_KEY, key])
         # weights stay fp32 in the file; bf16 is an inference precision chosen at load time

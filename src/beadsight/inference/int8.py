@@ -41,7 +41,7 @@ from beadsight.files import atomic_write, atomic_write_json
 from beadsight.inference.backend import BackendUnavailableError
 from beadsight.inference.config import INT8
 from beadsight.inference.export_format import model_fingerprint
-from beadsight.inference.machine import machine_key
+from beadsight.inference.machine import import_openvino, machine_key
 from beadsight.inference.metric_parity import (
     GATE_KEY,
     MetricParity,
@@ -131,8 +131,8 @@ def _calibration_key(windows: np.ndarray | None, recipe: QuantizationRecipe) -> 
 
 def _openvino():
     try:
+        ov = import_openvino()  # first: nncf must not load the telemetry either
         import nncf
-        import openvino as ov
     except ImportError:
         raise BackendUnavailableError(
             "int8: needs openvino and nncf; `pip install beadsight[openvino]`"

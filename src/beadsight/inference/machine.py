@@ -10,9 +10,26 @@ import hashlib
 import importlib.util
 import os
 import platform
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import torch
+
+
+def import_openvino() -> ModuleType:
+    """The ``openvino`` module (ImportError where it is not installed), with its usage
+    telemetry off for this process.
+
+    ``import openvino`` reports to Google Analytics and writes ``~/intel`` unless a consent
+    file or a CI variable says no, and nncf reports each quantization. Both send nothing
+    when ``openvino_telemetry`` cannot be imported, their own path for a machine without
+    it; this arranges that before either loads. Every beadsight import of openvino (and of
+    nncf) goes through here."""
+    sys.modules.setdefault("openvino_telemetry", None)
+    import openvino
+
+    return openvino
 
 
 def default_cache_dir() -> Path:
@@ -80,17 +97,19 @@ def cpu_summary() -> str:
 def machine_key() -> str:
     """Short hash of what makes timings and compiled code machine-specific."""
     parts = [platform.machine(), cpu_name(), str(default_threads()), torch.__version__]
-    for name in ("onnxruntime", "openvino"):
-        try:
-            parts.append(f"{name}={__import__(name).__version__}")
-        except ImportError:
-            parts.append(f"{name}=none")
     try:
-        import openvino as ov
+        import onnxruntime
 
-        parts.append(",".join(ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")))
+        parts.append(f"onnxruntime={onnxruntime.__version__}")
     except ImportError:
-        pass
+        parts.append("onnxruntime=none")
+    try:
+        ov = import_openvino()
+    except ImportError:
+        parts.append("openvino=none")
+    else:
+        caps = ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+        parts += [f"openvino={ov.__version__}", ",".join(caps)]
     if torch.cuda.is_available():
         parts.append(torch.cuda.get_device_name(0))
     return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]

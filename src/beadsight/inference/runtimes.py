@@ -54,7 +54,7 @@ from beadsight.inference.backend import (
     BackendUnavailableError,
 )
 from beadsight.inference.export_format import model_fingerprint, write_onnx
-from beadsight.inference.machine import default_threads
+from beadsight.inference.machine import default_threads, import_openvino
 
 log = logging.getLogger(__name__)
 
@@ -244,7 +244,7 @@ class OnnxBackend(_ModelFileBackend):
 def openvino_supports_bf16(core: Any = None) -> bool:
     """True when OpenVINO's CPU plugin reports native bf16 (avx512_bf16 / AMX)."""
     try:
-        import openvino as ov
+        ov = import_openvino()
     except ImportError:
         return False
     core = core or ov.Core()
@@ -258,7 +258,7 @@ class OpenVinoBackend(_ModelFileBackend):
 
     def _load(self, path: Path, threads: int, cache_dir: Path | None) -> None:
         try:
-            import openvino as ov
+            ov = import_openvino()
         except ImportError:
             raise BackendUnavailableError(
                 "openvino: not installed; `pip install beadsight[openvino]`"
