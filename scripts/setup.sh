@@ -55,6 +55,14 @@ uv_install pip -e ".[$extras]"
 # installs and chromium unpacks
 env -u PYTHONDONTWRITEBYTECODE .venv/bin/python scripts/warm_bytecode.py &
 warm_pid=$!
+collect_pid=
+if [ "$extras" = dev ]; then  # the test modules' bytecode, their asserts rewritten: compiled
+  # here beside the above, not by each of pytest's workers at once when the tests start
+  collect_log=$(mktemp)
+  env -u PYTHONDONTWRITEBYTECODE .venv/bin/python -m pytest --collect-only -q \
+    -p no:cacheprovider >"$collect_log" 2>&1 &
+  collect_pid=$!
+fi
 if [ "$extras" = dev ]; then  # OctoPrint's virtual printer, an independent Marlin peer for the
   # tests; OctoPrint pins many packages, so it gets a venv of its own (uv: seconds, not minutes)
   [ -x .venv-octoprint/bin/python ] || .venv/bin/uv venv -q -p "$PY" .venv-octoprint
@@ -66,4 +74,9 @@ if [ -n "$apt_pid" ] && ! wait "$apt_pid"; then
   exit 1
 fi
 wait "$warm_pid"
+if [ -n "$collect_pid" ] && ! wait "$collect_pid"; then
+  cat "$collect_log" >&2
+  echo "setup: collecting the tests failed (above)" >&2
+  exit 1
+fi
 .venv/bin/python -c "import beadsight, torch; print(f'beadsight {beadsight.__version__} ready (torch {torch.__version__}) in .venv')"
