@@ -54,7 +54,7 @@ def pytest_configure(config):
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-STRICT = os.environ.get("CI", "").lower() == "true"  # CI: a skipped test fails the run
+pytest_plugins = ("pytester",)  # tests/test_ci_policy.py runs this file's policy on a probe
 
 
 def pytest_collection_modifyitems(config, items):
@@ -73,7 +73,7 @@ def pytest_sessionfinish(session, exitstatus):
     a skipped test means a broken setup: the run fails and says so (-rs lists the reasons)."""
     reporter = session.config.pluginmanager.get_plugin("terminalreporter")
     skipped = reporter.stats.get("skipped", []) if reporter else []
-    if STRICT and skipped:
+    if os.environ.get("CI", "").lower() == "true" and skipped:
         reporter.write_sep("=", f"CI=true: {len(skipped)} skipped test(s) fail the run", red=True)
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
