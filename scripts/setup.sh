@@ -53,7 +53,8 @@ uv_install() {
 uv_install pip -e ".[$extras]"
 # bytecode for what beadsight imports (uv compiles none): a second core's work while OctoPrint
 # installs and chromium unpacks
-env -u PYTHONDONTWRITEBYTECODE .venv/bin/python scripts/warm_bytecode.py &
+warm_log=$(mktemp)  # its last line says what is ready
+env -u PYTHONDONTWRITEBYTECODE .venv/bin/python scripts/warm_bytecode.py >"$warm_log" &
 warm_pid=$!
 collect_pid=
 if [ "$extras" = dev ]; then  # the test modules' bytecode, their asserts rewritten: compiled
@@ -79,4 +80,4 @@ if [ -n "$collect_pid" ] && ! wait "$collect_pid"; then
   echo "setup: collecting the tests failed (above)" >&2
   exit 1
 fi
-.venv/bin/python -c "import beadsight, torch; print(f'beadsight {beadsight.__version__} ready (torch {torch.__version__}) in .venv')"
+cat "$warm_log"

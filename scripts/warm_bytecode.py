@@ -1,5 +1,6 @@
 """Import every beadsight module and every library they import (at module level or inside
-a function), so that Python writes their bytecode once, at setup (scripts/setup.sh).
+a function), so that Python writes their bytecode once, at setup (scripts/setup.sh); then
+say what is ready.
 
 uv installs without compiling bytecode, and where PYTHONDONTWRITEBYTECODE is set no process
 writes it later: each would compile torch & co. from source on every import (3.9 s instead
@@ -40,6 +41,8 @@ def main() -> None:
             importlib.import_module(name)
         except ModuleNotFoundError:  # a backport for older Pythons (tomli); the tests
             pass  # check that every declared extra imports
+    torch = sys.modules["torch"]
+    print(f"beadsight {beadsight.__version__} ready (torch {torch.__version__}) in .venv")
 
 
 if __name__ == "__main__":
