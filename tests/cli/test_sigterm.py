@@ -120,6 +120,8 @@ def test_train_on_sigterm_saves_last_pt_and_exits_143(tmp_path):
             str(run),
             "--width",
             "8",
+            "--batch-size",  # cheap steps: the test only needs two of them before SIGTERM
+            "8",
             "--steps",
             "100000",
             "--log-every-steps",

@@ -18,7 +18,7 @@ def run(tmp_path_factory):
     folder = tmp_path_factory.mktemp("resume")
     data = write_synthetic_dataset(folder / "d.h5", 6, 40, 64, 0, 30.0)
     argv = ["train", "--data", str(data), "--out", str(folder / "run"), "--width", "8"]
-    assert main([*argv, "--steps", "2", "--no-progress"]) == 0
+    assert main([*argv, "--steps", "2", "--batch-size", "8", "--no-progress"]) == 0
     return folder / "run", (folder / "run" / "last.pt").read_bytes()
 
 

@@ -134,9 +134,9 @@ def test_input_noise_only_in_training(make_dataset, tmp_path, tiny_model):
 
 # --- end to end through the CLI -----------------------------------------------------
 def test_train_cli_writes_a_complete_run_folder(make_dataset, tmp_path, capsys):
-    data = make_dataset()
+    data = make_dataset(frames_per_press=20)  # short presses: one epoch of cheap steps
     run = tmp_path / "run"
-    assert cli("--data", data, "--out", run, "--steps", 4, "--batch-size", 40, *FAST) == 0
+    assert cli("--data", data, "--out", run, "--steps", 4, "--batch-size", 20, *FAST) == 0
     assert str(run) in capsys.readouterr().out
     for name in ("config.json", "split.json", "metrics.jsonl", "best.pt", "last.pt"):
         assert (run / name).is_file(), name
@@ -161,8 +161,8 @@ def test_train_cli_writes_a_complete_run_folder(make_dataset, tmp_path, capsys):
     with open_dataset(data) as ds:
         frames = np.flatnonzero(np.isin(ds.press_id, split["train"]))
         assert split["windows"]["train"] == int((frames >= 14).sum())
-    assert split["windows"]["train"] == 160  # train presses 2-5: all have the history
-    assert len(val_lines) == 1 and val_lines[0]["epoch"] == 1.0  # 160 windows / 40 = 4 steps
+    assert split["windows"]["train"] == 80  # train presses 2-5: all have the history
+    assert len(val_lines) == 1 and val_lines[0]["epoch"] == 1.0  # 80 windows / 20 = 4 steps
     assert math.isfinite(val_lines[0]["val_loss"]) and val_lines[0]["val_mae_kpa"] > 0
 
     for name in ("best.pt", "last.pt"):
@@ -236,12 +236,12 @@ def test_cosine_schedule_runs_from_lr_to_lr_min():
 def test_fine_tune_from_a_checkpoint_with_a_cosine_schedule(make_dataset, tmp_path, capsys):
     data = make_dataset()
     base, tuned = tmp_path / "base", tmp_path / "tuned"
-    assert cli("--data", data, "--out", base, "--steps", 2, "--batch-size", 16, *FAST) == 0
+    assert cli("--data", data, "--out", base, "--steps", 2, "--batch-size", 8, *FAST) == 0
     source = load_checkpoint(base / "best.pt")
 
     # the width comes from the checkpoint (the default would be 16); a tiny learning
     # rate leaves the starting weights visible in the result
-    args = ["--steps", 3, "--batch-size", 16, "--lr", 1e-12, "--lr-schedule", "cosine"]
+    args = ["--steps", 3, "--batch-size", 8, "--lr", 1e-12, "--lr-schedule", "cosine"]
     assert (
         cli("--data", data, "--out", tuned, "--init", base / "best.pt", *args, "--no-progress") == 0
     )

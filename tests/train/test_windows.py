@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from helpers.synthetic_presses import write_synthetic_dataset
 from helpers.train import one_torch_thread  # noqa: F401  (an autouse fixture)
 
 from beadsight.data.dataset import dataset_fingerprint, open_dataset
@@ -28,9 +29,12 @@ from beadsight.train.windows import (
 T = 15
 
 
-@pytest.fixture
-def tiny(make_dataset):
-    path = make_dataset(presses=6, frames_per_press=40)
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """One dataset for the module: the tests only read it."""
+    path = write_synthetic_dataset(
+        tmp_path_factory.mktemp("windows") / "tiny.h5", 6, 40, 64, 0, 30.0
+    )
     with open_dataset(path) as ds:
         yield path, ds
 
