@@ -22,6 +22,7 @@ from helpers.forged_checkpoints import (
     save_forged,
 )
 from helpers.isolated import run_isolated
+from helpers.live import tiny_model as make_tiny_model
 from test_checkpoint import reference_training_dict
 
 from beadsight import load_checkpoint
@@ -59,11 +60,12 @@ FORGED = {
 }
 
 
-@pytest.fixture
-def forged(tmp_path) -> dict[str, Path]:
-    """Reference checkpoints whose pixel_mean is each forged array."""
+@pytest.fixture(scope="module")
+def forged(tmp_path_factory) -> dict[str, Path]:
+    """Reference checkpoints whose pixel_mean is each forged array (only read by the tests)."""
+    folder = tmp_path_factory.mktemp("forged")
     return {
-        name: save_forged(reference(pixel_mean=make()), tmp_path / f"{name}.pt")
+        name: save_forged(reference(pixel_mean=make()), folder / f"{name}.pt")
         for name, make in FORGED.items()
     }
 
@@ -230,11 +232,13 @@ BAD_REFERENCE = {
 }
 
 
-@pytest.fixture
-def bad_checkpoints(tmp_path, tiny_model) -> dict[str, tuple[Path, str]]:
+@pytest.fixture(scope="module")
+def bad_checkpoints(tmp_path_factory) -> dict[str, tuple[Path, str]]:
+    """Only read by the tests: built once for the module."""
+    tmp_path, model = tmp_path_factory.mktemp("bad"), make_tiny_model()
     out = {}
     for name, (change, message) in BAD_OWN.items():
-        out[name] = (_own(tiny_model, tmp_path / f"{name}.pt", **change), message)
+        out[name] = (_own(model, tmp_path / f"{name}.pt", **change), message)
     for name, (change, message) in BAD_REFERENCE.items():
         ref = reference()
         if "weights_change" in change:

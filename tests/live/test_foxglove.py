@@ -269,8 +269,8 @@ def test_foxglove_errors_are_one_line(capsys):
     assert "Foxglove port 70000: expected 0..65535" in capsys.readouterr().err
 
 
-def test_missing_foxglove_sdk_names_the_extra():
-    assert live_without("foxglove", "--foxglove") == [
+def test_missing_foxglove_sdk_names_the_extra(monkeypatch, capsys):
+    assert live_without(monkeypatch, capsys, "foxglove", "--foxglove") == [
         "beadsight live: error: --foxglove needs the Foxglove SDK (the 'foxglove-sdk' "
         "package): pip install 'beadsight[ros]'"
     ]

@@ -75,7 +75,7 @@ def run(model, settings, seconds: float):
 
 def test_the_rest_is_taken_at_start_up_and_refreshed_while_unloaded(quiet_model, caplog):
     with caplog.at_level(logging.INFO):
-        sensor, seen, log = run(quiet_model, TORCH, 5.0)
+        sensor, seen, log = run(quiet_model, TORCH, 4.0)  # 100 readings: 5 rests, 3 needed
     assert ("warming_up", WAITING_FOR_REST) in log.changes  # no reading before the rest
     first = seen[0][0].source_index
     assert first >= 30, first  # still frames seen, plus the guard frames after them

@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import re
 import subprocess
 import sys
 import threading
@@ -20,7 +21,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers.browser import Beadsight
 from helpers.live import (
     BACKEND,
     press_frames,
@@ -87,21 +87,27 @@ def _sha(array: np.ndarray, dtype: str) -> str:
 
 
 @pytest.mark.slow
-def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path):
+def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path, capsys):
     """`beadsight live --source sim --ros2`: every topic arrives at a subscriber in another
     process with values, units, frames and stamps of the readings the run recorded."""
     domain, _ = dds
     peer = Peer(domain)
     out = tmp_path / "readings.h5"
-    # --max-age 30: every reading must arrive, also when a loaded machine stalls the
-    # publisher for over the default 0.5 s (the age rule has its own test)
-    run = Beadsight(
-        *("live", "--source", "sim", "--no-viewer", "--frames", "130", "--max-age", "30"),
-        *("--ros2", "--ros-domain", str(domain), "--output", str(out), "--backend", "torch"),
+    # the command in this process (a child spent ~3 s importing torch); the subscriber is
+    # the other process. --max-age 30: every reading must arrive, also when a loaded
+    # machine stalls the publisher for over the default 0.5 s (the age rule has its own test)
+    code = main(
+        [
+            *("live", "--source", "sim", "--no-viewer", "--frames", "130", "--max-age", "30"),
+            *("--ros2", "--ros-domain", str(domain), "--output", str(out), "--backend", "torch"),
+        ]
     )
+    said = capsys.readouterr()
+    said = said.out + said.err
+    assert code == 0, said
     started = rf"ros2: domain {domain}: /beadsight/pressure, /beadsight/force.*; reads (\S+)"
-    assert run.wait_line(started, 60).group(1) == "/beadsight/retake_rest"
-    assert run.proc.wait(90) == 0, run.rest()
+    match = re.search(started, said)
+    assert match and match.group(1) == "/beadsight/retake_rest", said
     got = peer.messages()
     with h5py.File(out) as f:
         t, force, cop = f["timestamp_s"][:], f["force_n"][:], f["cop_mm"][:]
@@ -155,7 +161,7 @@ def test_beadsight_live_ros2_reaches_an_independent_subscriber(dds, tmp_path):
         msg.FRAME_ID,
     )
     assert "camera" not in got
-    assert f"ros2: published {len(t)} readings, skipped 0" in run.rest()
+    assert f"ros2: published {len(t)} readings, skipped 0" in said
 
 
 # --- in process: health, camera, a namespace; the wire format ------------------------------
@@ -314,8 +320,8 @@ def test_bad_ros_options_are_one_line_errors_before_the_model_loads(
     assert error in err and "no-such-checkpoint" not in err
 
 
-def test_missing_cyclonedds_names_the_extra():
-    assert live_without("cyclonedds", "--ros2") == [
+def test_missing_cyclonedds_names_the_extra(monkeypatch, capsys):
+    assert live_without(monkeypatch, capsys, "cyclonedds", "--ros2") == [
         "beadsight live: error: --ros2 needs Cyclone DDS (the 'cyclonedds' package): "
         "pip install 'beadsight[ros]'"
     ]

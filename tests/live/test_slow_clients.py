@@ -17,6 +17,7 @@ import foxglove  # noqa: F401  (the 'ros' extra: a missing one is an import erro
 import numpy as np
 import pytest
 from helpers.live import BACKEND, wait_until
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from beadsight.errors import ConfigError
@@ -176,6 +177,13 @@ def test_foxglove_client_reading_10_messages_a_second_gets_fresh_readings():
                 if isinstance(frame, bytes) and frame[0] == 0x01:
                     ages.append(time.time() - struct.unpack_from("<IQ", frame, 1)[1] / 1e9)
                 time.sleep(0.1)
+            # stop sensing, then read to the server's close: a client that stops reading
+            # holds its own close until the server drops it (10 s more of sensing)
+            sensor.stop()
+            server.finish()
+            with contextlib.suppress(ConnectionClosed, TimeoutError):
+                while True:
+                    ws.recv(10)
     finally:
         sensor.stop()
         server.finish()
