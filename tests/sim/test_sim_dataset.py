@@ -105,6 +105,8 @@ def test_simulate_cli(tmp_path, capsys):
         "75",
         "--image-size",
         "32",
+        "--fps",
+        "10",  # a third of the frames of 30 fps
         "--pouches",
         "2",
         "--no-progress",
@@ -112,7 +114,7 @@ def test_simulate_cli(tmp_path, capsys):
     assert main(argv) == 0
     assert str(out) in capsys.readouterr().out
     with open_dataset(out) as ds:
-        assert ds.num_presses == 2 and ds.image_size == 32
+        assert ds.num_presses == 2 and ds.image_size == 32 and ds.fps == 10.0
         assert ds.provenance["simulator"]["config"]["n_beads"] == 75
         assert ds.provenance["simulator"]["pouches"] == 2
     assert main(argv) == 1  # refuses to overwrite
@@ -125,7 +127,8 @@ def test_sharded_simulation_joins_every_shard_in_order(tmp_path):
     """--workers: each shard is the session of its own seed; the joined file holds every
     shard's frames and labels unchanged, on one increasing clock, and the same seed and
     workers give the same file."""
-    kwargs = dict(seed=SEED, image_size=32, pouches=3, variety="train", progress=False)
+    # 10 fps: a third of the frames, as good as 30 for joining them.
+    kwargs = dict(seed=SEED, image_size=32, fps=10.0, pouches=3, variety="train", progress=False)
     joined = simulate_dataset(tmp_path / "joined.h5", 3, workers=2, **kwargs)
     again = simulate_dataset(tmp_path / "again.h5", 3, workers=2, **kwargs)
     with open_dataset(joined) as d, open_dataset(again) as e:
@@ -139,6 +142,7 @@ def test_sharded_simulation_joins_every_shard_in_order(tmp_path):
             2,
             seed=shards[0]["seed"],
             image_size=32,
+            fps=10.0,
             pouches=2,
             variety="train",
             progress=False,

@@ -35,12 +35,15 @@ def _digest(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:16]
 
 
-def family_frames(family: str, seed: int, size: int = SIZE) -> np.ndarray:
-    """(2, S, S, 3) uint8: a pouch of ``family`` at rest and pressed."""
+def family_frames(family: str, seed: int, size: int = SIZE, pressed: bool = True) -> np.ndarray:
+    """(2, S, S, 3) uint8: a pouch of ``family`` at rest and pressed ((1, S, S, 3): at rest
+    only, unless ``pressed``)."""
     look = sample_look(np.random.default_rng(seed), family, SimConfig(image_size_px=size))
     sim = PouchSimulator(look.config, seed)
     sim.step(DT, (0.0, 0.0), -1.0)
     rest = sim.render()
+    if not pressed:
+        return rest[None]
     for _ in range(15):
         sim.step(DT, (3.0, -2.0), 1.3)
     return np.stack([rest, sim.render()])
@@ -79,7 +82,7 @@ def _stats(family: str) -> np.ndarray:
     """Mean over 3 pouches of per-channel mean and std and the saturation of a frame."""
     rows = []
     for seed in range(3):
-        f = family_frames(family, seed)[0].reshape(-1, 3).astype(float)
+        f = family_frames(family, seed, pressed=False)[0].reshape(-1, 3).astype(float)
         saturation = (f.max(1) - f.min(1)).mean()
         rows.append([*f.mean(0), *f.std(0), saturation])
     return np.mean(rows, axis=0)
@@ -143,20 +146,29 @@ def test_session_draws_a_look_per_pouch_on_top_of_its_build():
 
 
 def test_dataset_and_cli_record_each_pouchs_family(tmp_path):
+    # 10 fps: a third of the frames; what is checked here is the provenance, not the frames.
     out = simulate_dataset(
-        tmp_path / "looks.h5", 3, seed=2, image_size=32, pouches=3, looks="heldout", progress=False
+        tmp_path / "looks.h5",
+        3,
+        seed=2,
+        image_size=32,
+        fps=10.0,
+        pouches=3,
+        looks="heldout",
+        progress=False,
     )
     with open_dataset(out) as ds:
         looks = ds.provenance["simulator"]["looks"]
     assert looks["looks"] == "heldout" and len(looks["pouch_families"]) == 3
     assert set(looks["pouch_families"]) <= set(LOOK_SPLITS["heldout"])
     session = SimulatedSession(
-        SimConfig(image_size_px=32), 2, 3, presses_per_pouch=1, looks="heldout"
+        SimConfig(image_size_px=32, fps=10.0), 2, 3, presses_per_pouch=1, looks="heldout"
     )
     assert looks["pouch_families"] == [session.pouch_look(i).family for i in range(3)]
     cli = tmp_path / "cli.h5"
     argv = ["simulate", "--out", str(cli), "--presses", "4", "--pouches", "4", "--seed", "1"]
-    argv += ["--image-size", "32", "--looks", "train", "--workers", "2", "--no-progress"]
+    argv += ["--image-size", "32", "--fps", "10", "--looks", "train", "--workers", "2"]
+    argv += ["--no-progress"]
     assert main(argv) == 0
     with open_dataset(cli) as ds:
         looks = ds.provenance["simulator"]["looks"]

@@ -281,13 +281,23 @@ def test_session_frames_and_presses():
 
 @pytest.mark.timeout(60)
 def test_session_takes_a_scale_sample_due_less_than_a_step_away():
-    """Seed 700's 60th press has a scale sample due < 1 us after the physics clock, a gap too
-    short to step; the session used to wait for that sample forever."""
-    session = SimulatedSession(SimConfig(), seed=700, presses=60, render=False)
+    """A scale sample due < 1 us after the physics clock is a gap too short to step; the
+    session used to wait for that sample forever (seed 700 hung at its 60th press). Here the
+    frame rate puts a frame 0.5 us before the scale's second sample, in the first press."""
+    cfg = dataclasses.replace(SimConfig(), frame_time_jitter_s=0.0)
+    start = cfg.start_time_s
+    # The scale's sample times depend on the seed and its rate, not on the frame rate.
+    probe = SimulatedSession(cfg, seed=700, presses=1, render=False)
+    due_s = [t for f in probe for t, _ in f.scale_readings][1] - start
+    cfg = dataclasses.replace(cfg, fps=round(cfg.fps * due_s) / (due_s - 0.5e-6))
+    session = SimulatedSession(cfg, seed=700, presses=1, render=False)
     frames = list(session)
     assert len(frames) == session.num_frames()
     readings = np.array([t for f in frames for t, _ in f.scale_readings])
     assert np.all(np.diff(readings) > 0)
+    # The case was reached: a reading taken less than 1 us after a frame.
+    after_frame = readings[:, None] - np.array([f.timestamp_s for f in frames])[None, :]
+    assert np.any((after_frame > 0) & (after_frame < 1e-6))
 
 
 def test_endless_session_starts_with_the_finite_sessions_presses():

@@ -98,11 +98,12 @@ def test_mixed_proportions_and_length():
 def test_mixed_is_deterministic_per_seed():
     cfg = SimConfig(image_size_px=32)
 
-    def first(seed, count=400):
-        s = SimulatedSession(cfg, seed, 6, profile="mixed")
+    def first(seed, count=400, render=True):
+        s = SimulatedSession(cfg, seed, 6, profile="mixed", render=render)
         return s.presses, [f for _, f in zip(range(count), s, strict=False)]
 
-    (pa, fa), (pb, fb), (pc, fc) = first(11), first(11), first(12)
+    # The other seed's frames are never compared: physics only (rendering never changes it).
+    (pa, fa), (pb, fb), (pc, fc) = first(11), first(11), first(12, render=False)
     assert pa == pb and pa != pc
     assert all(np.array_equal(a.frame_rgb, b.frame_rgb) for a, b in zip(fa, fb, strict=True))
     assert [f.true_force_n for f in fa] == [f.true_force_n for f in fb]
@@ -241,7 +242,8 @@ def test_depth_changes_while_held_change_the_force():
 # --- datasets and the press segmentation --------------------------------------------------
 def test_segmentation_finds_every_mixed_press():
     cfg = SimConfig()
-    session = SimulatedSession(cfg, 29, 12, render=False, profile="mixed")  # all five kinds
+    # Seed 272's 6 presses hold all five kinds, in few frames (a single long hold).
+    session = SimulatedSession(cfg, 272, 6, render=False, profile="mixed")
     assert {kind(p) for p in session.presses} == {k for k, _ in MIXED_KINDS}
     log, t, pos, index = ScaleLog(), [], [], []
     for f in session:
@@ -251,7 +253,7 @@ def test_segmentation_finds_every_mixed_press():
         index.append(f.press_index)
     force, valid = log.at(np.array(t))
     _, _, presses = segment_presses(force, valid, np.array(pos))
-    assert [index[a] for a, _ in presses] == list(range(12))
+    assert [index[a] for a, _ in presses] == list(range(6))
     assert all(index[b - 1] == index[a] for a, b in presses)
 
 

@@ -285,7 +285,9 @@ def test_docs_list_every_factor():
 # --- sessions and datasets ----------------------------------------------------------
 def test_variety_session_swaps_builds_and_keeps_the_plain_session_unchanged():
     cfg = SimConfig(image_size_px=32)
-    plain = list(SimulatedSession(cfg, seed=2, presses=2, presses_per_pouch=1))
+    # The plain session is only the reference clock and plan: physics only (rendering
+    # never changes them).
+    plain = list(SimulatedSession(cfg, seed=2, presses=2, presses_per_pouch=1, render=False))
     again = SimulatedSession(cfg, seed=2, presses=2, presses_per_pouch=1, variety="train")
     frames = list(again)
     # The variety stream is a new one: plan, clock and scale are those of the plain session.
@@ -299,11 +301,13 @@ def test_variety_session_swaps_builds_and_keeps_the_plain_session_unchanged():
 
 
 def test_variety_dataset_records_its_builds(tmp_path):
+    # 10 fps: a third of the frames; what is checked here is the provenance, not the frames.
     out = simulate_dataset(
         tmp_path / "v.h5",
         presses=3,
         seed=4,
         image_size=32,
+        fps=10.0,
         pouches=3,
         variety="heldout",
         progress=False,
@@ -314,7 +318,7 @@ def test_variety_dataset_records_its_builds(tmp_path):
     beads = [row[FACTOR_NAMES.index("n_beads")] for row in record["pouch_factors"]]
     assert len(beads) == 3 and all(60 <= b <= 70 or 130 <= b <= 140 for b in beads)
     session = SimulatedSession(
-        SimConfig(image_size_px=32), 4, 3, presses_per_pouch=1, variety="heldout"
+        SimConfig(image_size_px=32, fps=10.0), 4, 3, presses_per_pouch=1, variety="heldout"
     )
     assert beads == [session.pouch_config(i).n_beads for i in range(3)]
 
@@ -322,7 +326,8 @@ def test_variety_dataset_records_its_builds(tmp_path):
 def test_simulate_cli_variety(tmp_path, capsys):
     out = tmp_path / "t.h5"
     argv = ["simulate", "--out", str(out), "--presses", "2", "--pouches", "2", "--seed", "1"]
-    assert main([*argv, "--image-size", "32", "--variety", "train", "--no-progress"]) == 0
+    small = ["--image-size", "32", "--fps", "10"]  # a third of the frames: none is read
+    assert main([*argv, *small, "--variety", "train", "--no-progress"]) == 0
     with open_dataset(out) as ds:
         assert ds.provenance["simulator"]["variety"]["split"] == "train"
         assert ds.num_presses == 2 and ds.image_size == 32
@@ -350,12 +355,15 @@ def test_training_on_a_variety_dataset_resumes_where_it_stopped(tmp_path):
         presses=3,
         seed=6,
         image_size=32,
+        fps=10.0,
         pouches=3,
         variety="train",
         progress=False,
     )
     small = ["--width", "2", "--batch-size", "4", "--threads", "1", "--no-progress"]
     small += ["--device", "cpu", "--loader", "host", "--num-workers", "0"]
+    # Short windows and every 8th validation window: the claim is the resume, not the fit.
+    small += ["--frames", "5", "--val-stride", "8"]
 
     def train(out, steps, *extra):
         args = ["train", "--data", str(data), "--out", str(out), "--steps", str(steps)]
