@@ -80,7 +80,8 @@ def test_live_offline_scores_both_rows_on_a_simulated_dataset(tmp_path, capsys):
 
     data = tmp_path / "sim.h5"
     simulate = ["simulate", "--presses", "1", "--image-size", "64", "--out", str(data)]
-    beadsight_ok(*simulate, "--no-progress")
+    # 15 fps: the press lasts as long (the replay is real time) in half the frames to score
+    beadsight_ok(*simulate, "--fps", "15", "--no-progress")
     checkpoint = tiny_model().save(tmp_path / "tiny.pt")
     argv = [str(data), "--checkpoint", str(checkpoint), "--work", str(tmp_path / "work")]
     argv += ["--backend", "torch"]  # live's auto would time every runtime first

@@ -124,7 +124,7 @@ def test_demo_train_from_scratch(tmp_path, capsys):
     out = tmp_path / "trained"
     argv = ["demo", "--train", "--out", str(out), "--no-progress"]
     argv += "--presses 1 --max-frames 12 --animation-frames 4".split()
-    argv += "--train-presses 4 --train-steps 3 --train-batch-size 2 --train-width 4".split()
+    argv += "--train-presses 3 --train-steps 3 --train-batch-size 2 --train-width 4".split()
     argv += "--train-image-size 32".split()
     assert main(argv) == 0
     printed = capsys.readouterr().out

@@ -52,7 +52,7 @@ def test_short_presses_are_evaluated_on_every_frame_with_history(make_dataset, t
 
 
 def test_coverage_in_metrics_json_and_printed(make_dataset, tiny_model, tmp_path, capsys):
-    data = make_dataset(presses=6, frames_per_press=40)
+    data = make_dataset(presses=6, frames_per_press=20)
     model = tiny_model.save(tmp_path / "m.pt")
     out = tmp_path / "eval"
     code = main(
@@ -74,9 +74,9 @@ def test_coverage_in_metrics_json_and_printed(make_dataset, tiny_model, tmp_path
     )
     assert code == 0
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["coverage"] == pytest.approx((240 - 14) / 240)
-    assert metrics["frames"] == 226 and metrics["valid_frames"] == 240
-    assert "coverage: 94.2% of the split's 240 valid frames" in capsys.readouterr().out
+    assert metrics["coverage"] == pytest.approx((120 - 14) / 120)
+    assert metrics["frames"] == 106 and metrics["valid_frames"] == 120
+    assert "coverage: 88.3% of the split's 120 valid frames" in capsys.readouterr().out
 
 
 def test_frames_without_a_rest_image_are_not_covered(rest_run, tmp_path, capsys):
@@ -204,8 +204,8 @@ def test_reference_split_is_refused_on_another_dataset(reference_setup, make_dat
         evaluate(model, short, EvaluateConfig(split="test", device="cpu", progress=False))
     with pytest.raises(EvaluationError, match="stores no validation split"):
         evaluate(model, ref_file, EvaluateConfig(split="val", device="cpu", progress=False))
-    metrics = evaluate(model, ref_file, EvaluateConfig(split="all", device="cpu", progress=False))
-    assert metrics["split_source"] == "all"
+    settings = EvaluateConfig(split="all", device="cpu", progress=False, max_frames=8)
+    assert evaluate(model, ref_file, settings)["split_source"] == "all"  # any frames do
     torch.save({k: v for k, v in ckpt.items() if k != "test_indices"}, tmp_path / "old.pt")
     with pytest.raises(EvaluationError, match="no usable train_indices/test_indices"):
         evaluate(

@@ -73,9 +73,9 @@ def reports(shipped, tmp_path_factory):
         "--presses",
         "3",
         "--max-frames",
-        "90",
+        "36",  # about a dozen frames a press: each press has its row
         "--animation-frames",
-        "16",
+        "6",
         "--device",
         "cpu",
         "--no-progress",
