@@ -43,10 +43,15 @@ def post_record(port: int, host: str, body: bytes, headers: str = "") -> tuple[i
     return request(port, head.encode() + body)
 
 
-def sensing_rate(sensor: LiveSensor, seconds: float) -> float:
-    n0, t0 = sensor.stats().readings, time.monotonic()
-    time.sleep(seconds)
-    return (sensor.stats().readings - n0) / (time.monotonic() - t0)
+def sensing_rate(sensor: LiveSensor, seconds: float, windows: int = 2) -> float:
+    """Readings per second: the best of ``windows`` back-to-back windows, so that another
+    process's burst on a shared CPU in one window does not decide a comparison."""
+    rates = []
+    for _ in range(windows):
+        n0, t0 = sensor.stats().readings, time.monotonic()
+        time.sleep(seconds / windows)
+        rates.append((sensor.stats().readings - n0) / (time.monotonic() - t0))
+    return max(rates)
 
 
 def test_200_idle_event_streams_do_not_slow_sensing(model):
