@@ -102,8 +102,10 @@ def test_mixed_is_deterministic_per_seed():
         s = SimulatedSession(cfg, seed, 6, profile="mixed", render=render)
         return s.presses, [f for _, f in zip(range(count), s, strict=False)]
 
-    # The other seed's frames are never compared: physics only (rendering never changes it).
-    (pa, fa), (pb, fb), (pc, fc) = first(11), first(11), first(12, render=False)
+    # Seed 12's first 400 frames hold a reference press and a changing-while-held one. The
+    # other seed's frames are never compared: physics only (rendering never changes it).
+    (pa, fa), (pb, fb), (pc, fc) = first(12), first(12), first(11, render=False)
+    assert {f.press_index for f in fa} == {0, 1} and pa[1].hold_moves
     assert pa == pb and pa != pc
     assert all(np.array_equal(a.frame_rgb, b.frame_rgb) for a, b in zip(fa, fb, strict=True))
     assert [f.true_force_n for f in fa] == [f.true_force_n for f in fb]
