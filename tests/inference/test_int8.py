@@ -130,17 +130,18 @@ def test_small_simulated_sessions_are_kept_read_only_and_large_ones_are_not(monk
     import beadsight.inference.metric_parity as mp
 
     monkeypatch.setattr(mp, "_sessions", type(mp._sessions)())
-    first = mp._simulated_session(32, 77, 1)
-    assert mp._simulated_session(32, 77, 1) is first  # simulated once
+    # 16 px: the cache's rules do not depend on the size, and smaller frames simulate faster
+    first = mp._simulated_session(16, 77, 1)
+    assert mp._simulated_session(16, 77, 1) is first  # simulated once
     assert not first.frames.flags.writeable and not first.force_n.flags.writeable
-    assert first.frames.shape[1:] == (32, 32, 3) and first.contact.any()
-    other = mp._simulated_session(32, 78, 1)
-    assert other is not first and list(mp._sessions) == [(32, 77, 1), (32, 78, 1)]
+    assert first.frames.shape[1:] == (16, 16, 3) and first.contact.any()
+    other = mp._simulated_session(16, 78, 1)
+    assert other is not first and list(mp._sessions) == [(16, 77, 1), (16, 78, 1)]
     monkeypatch.setattr(mp, "SESSION_CACHE_BYTES", first.frames.nbytes + other.frames.nbytes - 1)
-    mp._simulated_session(32, 77, 1)  # the most recent now: the other one is dropped first
-    mp._simulated_session(32, 79, 1)
-    assert (32, 78, 1) not in mp._sessions and list(mp._sessions)[-1] == (32, 79, 1)
+    mp._simulated_session(16, 77, 1)  # the most recent now: the other one is dropped first
+    mp._simulated_session(16, 79, 1)
+    assert (16, 78, 1) not in mp._sessions and list(mp._sessions)[-1] == (16, 79, 1)
     assert sum(s.frames.nbytes for s in mp._sessions.values()) <= mp.SESSION_CACHE_BYTES
     monkeypatch.setattr(mp, "SESSION_CACHE_BYTES", 1)
-    mp._simulated_session(32, 80, 1)
+    mp._simulated_session(16, 80, 1)
     assert not mp._sessions  # too large alone: simulated, returned, not kept
