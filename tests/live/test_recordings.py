@@ -167,8 +167,8 @@ def test_cli_live_output_on_a_full_disk_exits_non_zero(model, full_disk, tmp_pat
             assert force == pytest.approx(float(rf.force_n[i]), rel=1e-4, abs=1e-6)
 
 
-def test_viewer_record_button_on_a_full_disk_shows_the_error(model, full_disk):
-    frames, _ = press_frames(presses=6, per_press=30)
+def test_viewer_record_button_on_a_full_disk_shows_the_error(model, presses, full_disk):
+    frames, _ = presses  # ~100 maps recorded after the click: six times the 256 KiB disk
     source = ScriptedSource(frames, stall_after=SPAN + 5)
     with (
         LiveSensor(model, source, **BACKEND) as sensor,

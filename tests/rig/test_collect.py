@@ -174,20 +174,20 @@ def test_plan_outside_the_envelope_is_refused_before_anything_moves(tmp_path):
 def test_collect_then_process(tmp_path):
     out = tmp_path / "raw"
     with Rig() as r:
-        plan = _plan(r.config, presses=2)
+        plan = _plan(r.config)  # a calibration press and a planned one: both kinds of target
         result = r.collect(plan, out)
-    assert result.status == "complete" and result.presses_done == 3 and result.frames > 0
-    assert [e["press"] for e in _events(out, "press_end")] == [0, 1, 2]
+    assert result.status == "complete" and result.presses_done == 2 and result.frames > 0
+    assert [e["press"] for e in _events(out, "press_end")] == [0, 1]
     rec = open_recording(out)
-    assert rec.metadata["status"] == "complete" and rec.metadata["plan"]["presses"] == 2
+    assert rec.metadata["status"] == "complete" and rec.metadata["plan"]["presses"] == 1
     assert rec.has_monotonic and rec.frame_hw == (IMAGE, IMAGE)
     data_moves = rec.moves.press[rec.moves.is_data]
-    assert set(data_moves.tolist()) == {0, 1, 2}
+    assert set(data_moves.tolist()) == {0, 1}
     assert rec.moves.gcode[0] == "G28" and not rec.moves.is_data[0]
     qa = process_recording(
         out, tmp_path / "d.h5", ProcessConfig(image_size=IMAGE, preprocess="none"), progress=False
     )
-    assert qa["presses"] == 3
+    assert qa["presses"] == 2
     with open_dataset(tmp_path / "d.h5") as ds:
         assert ds.force_n[ds.valid].max() > 3.0
         targets = plan.targets()
