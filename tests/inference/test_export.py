@@ -177,9 +177,10 @@ def test_cli_export(checkpoint, tmp_path, capsys):
 
 
 def test_openvino_export_sends_no_telemetry_and_writes_nothing_home(checkpoint, tmp_path):
-    """OpenVINO's converter (``convert_model``) reports usage to Google Analytics and
-    writes ``~/intel`` unless a consent file or CI=true says no. ``beadsight export``,
-    run as a user runs it (a fresh process, no CI variable), must do neither."""
+    """``import openvino`` (and its converter, ``convert_model``) report usage to Google
+    Analytics and write ``~/intel`` unless a consent file or CI=true says no.
+    ``beadsight export``, run as a user runs it (a fresh process, no CI variable), must do
+    neither."""
     home = tmp_path / "home"
     home.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("CI", "TF_BUILD", "JENKINS_URL")}
