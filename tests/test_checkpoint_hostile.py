@@ -1,14 +1,18 @@
 """Checkpoints we did not write and that lie: forged numpy arrays, NaN models, bad metadata.
 
 Loaders of forged arrays run in a subprocess, so that a crash (the failure these
-files were built to cause) fails the test instead of killing pytest.
+files were built to cause) fails the tests instead of killing pytest. One child runs
+the three isolated checks in turn (the ``isolated`` fixture; each test reads its own
+part of the output): it imports torch once rather than three times.
 """
 
 from __future__ import annotations
 
 import json
 import re
+import textwrap
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,6 +27,7 @@ from helpers.forged_checkpoints import (
 )
 from helpers.isolated import run_isolated
 from helpers.live import tiny_model as make_tiny_model
+from helpers.synthetic_presses import write_synthetic_dataset
 from test_checkpoint import reference_training_dict
 
 from beadsight import load_checkpoint
@@ -70,9 +75,9 @@ def forged(tmp_path_factory) -> dict[str, Path]:
     }
 
 
-def test_forged_numpy_arrays_are_refused_by_the_loaders(forged):
-    proc = run_isolated(
-        f"""
+def loaders_check(forged: dict[str, Path]) -> str:
+    """Child code: every loader on every forged file."""
+    return f"""
         from beadsight.checkpoint import (UnsafeCheckpointError, checkpoint_summary,
                                           load_checkpoint, read_checkpoint_file)
         for path in {[str(p) for p in forged.values()]!r}:
@@ -83,26 +88,31 @@ def test_forged_numpy_arrays_are_refused_by_the_loaders(forged):
                 except UnsafeCheckpointError as e:
                     print("REFUSED", e)
         """
-    )
-    lines = proc.stdout.splitlines()
-    assert proc.returncode == 0, proc.stderr
-    assert not [ln for ln in lines if ln.startswith("LOADED")], proc.stdout
+
+
+def test_forged_numpy_arrays_are_refused_by_the_loaders(isolated):
+    part = isolated["loaders"]
+    assert part.finished and part.returncode == 0, part.stderr
+    lines = part.stdout.splitlines()
+    assert not [ln for ln in lines if ln.startswith("LOADED")], part.stdout
     for name in FORGED:
         refused = [ln for ln in lines if f"{name}.pt: refused to load" in ln]
-        assert len(refused) == 3, (name, proc.stdout)
-    assert "numpy dtype 'O8' is not a plain numeric" in proc.stdout
-    assert "f8_with_int_field.pt: refused to load: numpy dtype <f8 with fields" in proc.stdout
-    assert "needs 8000 bytes but holds 8" in proc.stdout
+        assert len(refused) == 3, (name, part.stdout)
+    assert "numpy dtype 'O8' is not a plain numeric" in part.stdout
+    assert "f8_with_int_field.pt: refused to load: numpy dtype <f8 with fields" in part.stdout
+    assert "needs 8000 bytes but holds 8" in part.stdout
 
 
-def test_every_command_refuses_a_forged_array(tmp_path, forged, make_dataset):
-    """info, evaluate, predict, live, train --init and train --resume, through the CLI."""
-    data = make_dataset(presses=2, frames_per_press=20)
+@pytest.fixture(scope="module")
+def forged_commands(tmp_path_factory, forged) -> list[list[str]]:
+    """info, evaluate, predict, live, train --init and train --resume of a forged array."""
+    tmp_path = tmp_path_factory.mktemp("commands")
+    data = write_synthetic_dataset(tmp_path / "tiny.h5", presses=2, frames_per_press=20)
     ckpt = str(forged["object_flags_cleared"])
     run = tmp_path / "run"
     run.mkdir()
     (run / "last.pt").write_bytes(Path(ckpt).read_bytes())
-    commands = [
+    return [
         ["info", ckpt],
         ["evaluate", "--checkpoint", ckpt, "--data", str(data), "--out", str(tmp_path / "ev")],
         ["predict", "--checkpoint", ckpt, "--input", str(data), "--out", str(tmp_path / "p.h5")],
@@ -120,19 +130,26 @@ def test_every_command_refuses_a_forged_array(tmp_path, forged, make_dataset):
         ],
         ["train", "--data", str(data), "--out", str(run), "--resume", "--steps", "1"],
     ]
-    proc = run_isolated(
-        f"""
+
+
+def commands_check(commands: list[list[str]]) -> str:
+    """Child code: each command through the CLI, its exit code printed."""
+    return f"""
         from beadsight.cli import main
         for argv in {commands!r}:
             print("RC", argv[0], main(argv), flush=True)
         """
-    )
-    assert proc.returncode == 0, proc.stderr
-    codes = [ln.split()[1:] for ln in proc.stdout.splitlines() if ln.startswith("RC ")]
-    assert codes == [[argv[0], "1"] for argv in commands], proc.stdout
-    refused = proc.stderr.count(".pt: refused to load: numpy dtype 'O8' is not a plain numeric")
-    assert refused == len(commands), proc.stderr
-    assert "Traceback" not in proc.stderr
+
+
+def test_every_command_refuses_a_forged_array(isolated, forged_commands):
+    """info, evaluate, predict, live, train --init and train --resume, through the CLI."""
+    part = isolated["commands"]
+    assert part.finished and part.returncode == 0, part.stderr
+    codes = [ln.split()[1:] for ln in part.stdout.splitlines() if ln.startswith("RC ")]
+    assert codes == [[argv[0], "1"] for argv in forged_commands], part.stdout
+    refused = part.stderr.count(".pt: refused to load: numpy dtype 'O8' is not a plain numeric")
+    assert refused == len(forged_commands), part.stderr
+    assert "Traceback" not in part.stderr
 
 
 def test_plain_numpy_arrays_of_every_allowed_kind_still_load(tmp_path):
@@ -250,11 +267,10 @@ def bad_checkpoints(tmp_path_factory) -> dict[str, tuple[Path, str]]:
     return out
 
 
-def test_bad_models_and_metadata_are_refused_at_load_and_by_info(bad_checkpoints, capsys):
-    """Same named error from load_checkpoint and from `info`; run isolated (width 10^6)."""
+def bad_check(bad_checkpoints: dict[str, tuple[Path, str]]) -> str:
+    """Child code: load_checkpoint and `info` on each bad checkpoint (width 10^6 among them)."""
     cases = {name: str(path) for name, (path, _message) in bad_checkpoints.items()}
-    proc = run_isolated(
-        f"""
+    return f"""
         from beadsight.checkpoint import CheckpointError, load_checkpoint
         from beadsight.cli import main
         for name, path in {cases!r}.items():
@@ -265,14 +281,55 @@ def test_bad_models_and_metadata_are_refused_at_load_and_by_info(bad_checkpoints
                 print(name, "REFUSED", e)
             print(name, "INFO", main(["info", path]))
         """
+
+
+@pytest.fixture(scope="module")
+def isolated(forged, forged_commands, bad_checkpoints) -> dict[str, SimpleNamespace]:
+    """Run each check above in one child process, in turn; per check: its stdout, its
+    stderr (an exception's traceback included), whether it finished, the exit code."""
+    checks = {
+        "loaders": loaders_check(forged),
+        "commands": commands_check(forged_commands),
+        "bad": bad_check(bad_checkpoints),
+    }
+    checks = {name: textwrap.dedent(code) for name, code in checks.items()}
+    proc = run_isolated(
+        f"""
+        import sys, traceback
+        for name, code in {checks!r}.items():
+            for stream in (sys.stdout, sys.stderr):
+                print("@@ check", name, file=stream, flush=True)
+            try:
+                exec(code, {{"__name__": "__main__"}})
+            except BaseException:
+                traceback.print_exc()
+            else:
+                print("@@ finished", name, flush=True)
+            sys.stdout.flush()
+            sys.stderr.flush()
+        """
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
-    lines = proc.stdout.splitlines()
-    errors = [ln.split(": error: ", 1)[1] for ln in proc.stderr.splitlines() if ": error: " in ln]
+    parts = {name: SimpleNamespace(stdout="", stderr="") for name in checks}
+    for stream in ("stdout", "stderr"):
+        pieces = re.split(r"^@@ check (\w+)\n", getattr(proc, stream), flags=re.M)
+        for name, text in zip(pieces[1::2], pieces[2::2], strict=True):
+            setattr(parts[name], stream, text)
+    for name, part in parts.items():
+        part.finished = f"@@ finished {name}" in part.stdout.splitlines()
+        part.returncode = proc.returncode
+    return parts
+
+
+def test_bad_models_and_metadata_are_refused_at_load_and_by_info(isolated, bad_checkpoints):
+    """Same named error from load_checkpoint and from `info`; run isolated (width 10^6)."""
+    part = isolated["bad"]
+    assert part.finished and part.returncode == 0, part.stderr[-3000:]
+    assert "Traceback" not in part.stderr, part.stderr[-3000:]
+    lines = part.stdout.splitlines()
+    errors = [ln.split(": error: ", 1)[1] for ln in part.stderr.splitlines() if ": error: " in ln]
     for name, (path, message) in bad_checkpoints.items():
         refused = [ln for ln in lines if ln.startswith(f"{name} REFUSED")]
-        assert len(refused) == 1, (name, proc.stdout)
+        assert len(refused) == 1, (name, part.stdout)
         text = refused[0].split(" REFUSED ", 1)[1]
         assert text.startswith(f"{path}: ") and re.search(message, text), (name, text)
         assert f"{name} INFO 1" in lines and text in errors, (name, errors)

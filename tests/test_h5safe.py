@@ -122,7 +122,7 @@ def test_absurd_row_claims_are_refused_before_any_allocation(tmp_path):
     assert f"{ours}: " in errors[0] and f"{ref}: " in errors[1] and f"{readings}: " in errors[3]
     assert not (tmp_path / "o.h5").exists() and not (tmp_path / "r.mcap").exists()
     peak_mb = int(proc.stdout.split("PEAK_RSS_MB")[1])
-    assert peak_mb < 1024, proc.stdout  # torch and friends, not the claimed rows
+    assert peak_mb < 1024, proc.stdout  # the libraries, not the claimed rows
 
 
 def test_the_column_claims_are_checked_too(tmp_path):

@@ -69,11 +69,13 @@ def _info(args: argparse.Namespace) -> int:
     """Summarise a dataset or a checkpoint (ours or the reference's)."""
     import h5py
 
-    from beadsight.checkpoint import checkpoint_summary, looks_like_checkpoint
     from beadsight.errors import BeadSightError
 
     path = Path(args.file)
     if path.is_file() and not h5py.is_hdf5(path):  # every file load_checkpoint may read
+        # here, not above: a dataset's summary needs no torch (3 s to import)
+        from beadsight.checkpoint import checkpoint_summary, looks_like_checkpoint
+
         if not looks_like_checkpoint(path):
             raise BeadSightError(
                 f"{path}: neither a dataset (an HDF5 file) nor a checkpoint (a torch zip "
