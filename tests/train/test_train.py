@@ -6,6 +6,7 @@ import json
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -394,36 +395,45 @@ def test_resume_after_sigkill_continues_the_same_run(make_dataset, tmp_path):
     assert json.loads((run / "config.json").read_text())["steps"] == step + 3
 
 
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 @pytest.mark.slow
 def test_ddp_with_two_gloo_processes(make_dataset, tmp_path):
+    """Data-parallel training in two ``beadsight train`` processes (gloo). They start with
+    the variables torchrun gives its workers (RANK, LOCAL_RANK, WORLD_SIZE, LOCAL_WORLD_SIZE,
+    MASTER_ADDR, MASTER_PORT): all that beadsight and torch's env:// rendezvous read.
+    torchrun's launcher itself, one more process importing torch, is not beadsight's code."""
     data = make_dataset()
     run = tmp_path / "run"
-    cmd = [
-        sys.executable,
-        "-m",
-        "torch.distributed.run",
-        "--standalone",
-        "--nproc_per_node",
-        "2",
-        "-m",
-        "beadsight",
-        "train",
-        "--data",
-        str(data),
-        "--out",
-        str(run),
-        "--steps",
-        "3",
-        "--batch-size",
-        "8",
-        "--device",
-        "cpu",
-        *FAST,
-    ]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    result = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert result.stdout.count("run folder:") == 1  # only rank 0 reports
+    args = _beadsight(
+        "--data", data, "--out", run, "--steps", 3, "--batch-size", 8, "--device", "cpu", *FAST
+    )
+    world = {"WORLD_SIZE": "2", "LOCAL_WORLD_SIZE": "2", "MASTER_ADDR": "127.0.0.1"}
+    env = {**os.environ, **world, "MASTER_PORT": str(_free_port()), "OMP_NUM_THREADS": "1"}
+    logs = [(tmp_path / f"rank{rank}.out", tmp_path / f"rank{rank}.err") for rank in range(2)]
+    procs = []
+    try:
+        for rank, (out, err) in enumerate(logs):
+            with out.open("w") as stdout, err.open("w") as stderr:
+                rank_env = {**env, "RANK": str(rank), "LOCAL_RANK": str(rank)}
+                procs.append(subprocess.Popen(args, stdout=stdout, stderr=stderr, env=rank_env))
+        # like torchrun, stop at the first failed rank: the other would wait for it
+        deadline = time.monotonic() + 300
+        while any(p.poll() is None for p in procs) and all(p.poll() in (None, 0) for p in procs):
+            assert time.monotonic() < deadline, "the ranks did not finish within 300 s"
+            time.sleep(0.1)
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+    errors = "\n".join(f"rank {r}: {err.read_text()[-3000:]}" for r, (_, err) in enumerate(logs))
+    assert [proc.returncode for proc in procs] == [0, 0], errors
+    stdout = [out.read_text() for out, _ in logs]
+    assert stdout[0].count("run folder:") == 1 and "run folder:" not in stdout[1]  # rank 0
     state = read_checkpoint_file(run / "last.pt")
     assert state["step"] == 3 and len(state["rng_cpu"]) == 2
     model = load_checkpoint(run / "last.pt")
