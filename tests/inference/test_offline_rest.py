@@ -6,6 +6,7 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
+import torch
 
 from beadsight.checkpoint import load_checkpoint
 from beadsight.data.dataset import open_dataset
@@ -16,17 +17,32 @@ from beadsight.inference.runtimes import CudaGraphBackend, TorchBackend
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # a shared 2-core machine
 
 
+@pytest.fixture(scope="module")
+def offline(rest_run, tmp_path_factory) -> tuple[np.ndarray, np.ndarray]:
+    """``predict``'s (valid, pressure_kpa) over the rest run's dataset: both streaming
+    runtimes are held to the same file, so it is written once."""
+    data, checkpoint = rest_run
+    out = tmp_path_factory.mktemp("offline") / "p.h5"
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as one_torch_thread, which a module fixture cannot use
+    try:
+        predict_recording(load_checkpoint(checkpoint), data, out, device="cpu", progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    with h5py.File(out, "r") as f:
+        return f["valid"][()], f["pressure_kpa"][()]
+
+
 @pytest.mark.parametrize("ring", ["torch", "device ring on the CPU"])
-def test_predict_matches_the_streaming_runtime_with_the_same_rest(rest_run, tmp_path, ring):
+def test_predict_matches_the_streaming_runtime_with_the_same_rest(rest_run, offline, ring):
     data, checkpoint = rest_run
     model = load_checkpoint(checkpoint)
-    out = predict_recording(model, data, tmp_path / "p.h5", device="cpu", progress=False)
+    valid, maps = offline
     if ring == "torch":
         backend = TorchBackend(model)
     else:
         backend = CudaGraphBackend(model, "fp32", device="cpu", use_graphs=False)
-    with open_dataset(data) as ds, h5py.File(out, "r") as f:
-        valid, maps = f["valid"][()], f["pressure_kpa"][()]
+    with open_dataset(data) as ds:
         rests = RestImages(ds)
         frames = ds.read_frames(0, len(ds))
         span, streamed = model.span, []
