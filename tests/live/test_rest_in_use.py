@@ -12,7 +12,7 @@ import threading
 import numpy as np
 import pytest
 import torch
-from helpers.live import TINY, TORCH, StatusLog
+from helpers.live import TINY, TORCH, StatusLog, wait_until
 
 from beadsight.checkpoint import CheckpointMeta, PressureModel
 from beadsight.config import ModelConfig
@@ -73,29 +73,59 @@ def run(model, settings, seconds: float):
     return sensor, seen, log
 
 
-def test_the_rest_is_taken_at_start_up_and_refreshed_while_unloaded(quiet_model, caplog):
-    with caplog.at_level(logging.INFO):
-        sensor, seen, log = run(quiet_model, TORCH, 4.0)  # 100 readings: 5 rests, 3 needed
+class _Lines(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.INFO)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(record.getMessage())
+
+
+@pytest.fixture(scope="module")
+def rested(quiet_model):
+    """run() of 4 s on the resting pouch with fp32 torch (about 100 readings: 5 rests, 3
+    needed) and the INFO lines it logged; the tests that take it only read it."""
+    root, lines = logging.getLogger(), _Lines()
+    level, before = root.level, set(threading.enumerate())
+    root.setLevel(logging.INFO)
+    root.addHandler(lines)
+    try:
+        sensor, seen, log = run(quiet_model, TORCH, 4.0)
+    finally:
+        root.removeHandler(lines)
+        root.setLevel(level)
+
+    def started() -> list:  # no_thread_leaks checks each test, after this: check the run here
+        return [t for t in threading.enumerate() if t not in before and t.is_alive()]
+
+    wait_until(lambda: not started(), 10, "threads of the run to end")
+    return sensor, seen, log, lines.lines
+
+
+def test_the_rest_is_taken_at_start_up_and_refreshed_while_unloaded(quiet_model, rested):
+    sensor, seen, log, lines = rested
     assert ("warming_up", WAITING_FOR_REST) in log.changes  # no reading before the rest
     first = seen[0][0].source_index
     assert first >= 30, first  # still frames seen, plus the guard frames after them
-    said = [r.getMessage() for r in caplog.records if "taken at start-up" in r.getMessage()]
+    said = [line for line in lines if "taken at start-up" in line]
     assert len(said) == 1 and "keep the pouch unloaded" in said[0]
-    for update, rest, window in seen:  # every reading is the model's against the rest in use
-        expected = quiet_model.predict(with_rest(rest, window))
-        np.testing.assert_allclose(update.reading.pressure_kpa, expected, atol=1e-9, rtol=1e-4)
+    # every reading is the model's against the rest in use (the model run once, batched)
+    expected = quiet_model.predict(np.stack([with_rest(rest, w) for _, rest, w in seen]))
+    got = np.stack([update.reading.pressure_kpa for update, _, _ in seen])
+    np.testing.assert_allclose(got, expected, atol=1e-9, rtol=1e-4)
     rests = {id(rest) for _, rest, _ in seen}
     assert len(rests) >= 3  # refreshed while unloaded and still
     np.testing.assert_array_equal(sensor.predictor.rest, sensor.watch.rest.image)  # the newest
     assert seen[-1][0].health.state == "ok"
 
 
-def test_a_stored_rest_serves_from_the_first_frame(quiet_model, tmp_path):
-    sensor, seen, _ = run(quiet_model, TORCH, 3.0)
+def test_a_stored_rest_serves_from_the_first_frame(quiet_model, rested, tmp_path):
+    sensor = rested[0]
     path = tmp_path / "rest.npz"
     sensor.watch.rest.save(path)
     stored = dataclasses.replace(TORCH, rest_file=str(path))
-    _, again, log = run(quiet_model, stored, 3.0)
+    _, again, log = run(quiet_model, stored, 1.0)
     assert again[0][0].source_index == quiet_model.span - 1  # a reading per window at once
     np.testing.assert_array_equal(again[0][1], sensor.watch.rest.image)
     assert WAITING_FOR_REST not in [m for _, m in log.changes]
