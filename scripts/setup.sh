@@ -37,8 +37,19 @@ if [ ! -x .venv/bin/python ]; then
   if "$PY" -m pip --version >/dev/null 2>&1; then "$PY" -m venv --without-pip .venv; else "$PY" -m venv .venv; fi
 fi
 if [ ! -x .venv/bin/uv ]; then
-  if .venv/bin/python -m pip --version >/dev/null 2>&1; then pip=(.venv/bin/python -m pip); else pip=("$PY" -m pip --python .venv/bin/python); fi
-  "${pip[@]}" install -q "uv>=0.4" 2>&1 | sed '/^WARNING: Location/d'  # pip's status is kept
+  # The system pip installs into the venv by --prefix (the venv's own Python): 3 s, where
+  # --python .venv/bin/python starts a second pip inside the venv (5 s). Not where the prefix
+  # layout is not the venv's (Debian's Python puts --prefix installs under local/). It
+  # ignores what the system Python has installed, or a uv there would count as installed.
+  if .venv/bin/python -m pip --version >/dev/null 2>&1; then
+    pip=(.venv/bin/python -m pip install)
+  elif [ "$("$PY" -c 'import sysconfig; print(sysconfig.get_preferred_scheme("prefix"))')" = posix_prefix ]; then
+    pip=("$PY" -m pip install --prefix .venv --ignore-installed)
+  else
+    pip=("$PY" -m pip --python .venv/bin/python install)
+  fi
+  "${pip[@]}" -q --disable-pip-version-check "uv>=0.4" 2>&1 \
+    | sed '/^WARNING: \(Location\|Running pip as\)/d'  # pip's status is kept (pipefail)
 fi
 # uv does not read pip's configuration, so pip's find-links (a local torch build) are passed on.
 links=${UV_FIND_LINKS:-${PIP_FIND_LINKS:-}}
