@@ -8,39 +8,36 @@ import os
 import signal
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+import pytest
+
+if TYPE_CHECKING:
+    from beadsight.checkpoint import PressureModel
+    from beadsight.config import ModelConfig
 
 
-def _share_cores_among_workers() -> int | None:
+def _share_cores_among_workers() -> None:
     """Under pytest-xdist, each worker's runtimes get its share of the cores (one thread each
     with one worker per core), through OMP_NUM_THREADS: torch reads it, and so does
     ``beadsight.inference.machine.default_threads`` for ONNX Runtime and OpenVINO; the CLI
     children a test starts inherit it. Without it every worker's runtimes spin on every core:
     with 2 workers on 2 cores at a load of 5-6, tests/inference/test_int8.py took 236 s
     instead of 53 s, test_select.py 112-207 s instead of 35 s. Set before torch and numpy
-    load; a limit the caller set is kept. Returns the share, or None."""
+    load (fixtures import them); a limit the caller set is kept."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if "PYTEST_XDIST_WORKER" not in os.environ or workers < 2 or "OMP_NUM_THREADS" in os.environ:
-        return None
+        return
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     share = max(1, (cores or 1) // workers)
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(name, str(share))
-    return share
 
 
-WORKER_THREADS = _share_cores_among_workers()
-
-import pytest  # noqa: E402 - after the thread limits, which torch and numpy read at import
-import torch  # noqa: E402
-from helpers.synthetic_presses import write_synthetic_dataset  # noqa: E402
-
-from beadsight.checkpoint import CheckpointMeta, PressureModel  # noqa: E402
-from beadsight.config import ModelConfig, SensorGeometry  # noqa: E402
-
-if WORKER_THREADS:
-    torch.set_num_threads(WORKER_THREADS)  # in case something started torch's pool before
-
-TINY = SensorGeometry(image_size_px=64)
+_share_cores_among_workers()
+# torch, numpy and beadsight are imported inside the fixtures and hooks below: under xdist the
+# controller process loads this file too but runs no test, and importing torch there (3 s)
+# delayed every worker's start.
 
 
 def pytest_configure(config):
@@ -59,13 +56,37 @@ pytest_plugins = ("pytester",)  # tests/test_ci_policy.py runs this file's polic
 
 def pytest_collection_modifyitems(config, items):
     """GPU tests are collected only where a CUDA device exists: on a CPU-only machine they are
-    deselected (counted as such), not skipped. ../shared/gpu-checklist.md runs them on a GPU."""
-    if torch.cuda.is_available():
-        return
-    gpu = [item for item in items if item.get_closest_marker("gpu")]
-    if gpu:
-        config.hook.pytest_deselected(items=gpu)
-        items[:] = [item for item in items if not item.get_closest_marker("gpu")]
+    deselected (counted as such), not skipped. ../shared/gpu-checklist.md runs them on a GPU.
+    Under xdist, the slow tests go first in each worker's share (:func:`slow_first`)."""
+    import torch
+
+    if not torch.cuda.is_available():
+        gpu = [item for item in items if item.get_closest_marker("gpu")]
+        if gpu:
+            config.hook.pytest_deselected(items=gpu)
+            items[:] = [item for item in items if not item.get_closest_marker("gpu")]
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        items[:] = slow_first(items, workers)
+
+
+def slow_first(items: list, workers: int) -> list:
+    """The tests in an order where each worker's share starts with its part of the ``slow``
+    ones. xdist's worksteal hands worker k the next ``len(left) // (workers - k)`` tests in
+    order, and a worker that runs out takes the back half of the busiest one's queue: with the
+    slow tests at the front of each share, the run ends on short tests that the workers can
+    share out. Before, a slow test near the end of a share (18 s) often ran last, alone. The
+    other tests keep their order, each module's together."""
+    slow = [item for item in items if item.get_closest_marker("slow")]
+    rest = [item for item in items if not item.get_closest_marker("slow")]
+    ordered: list = []
+    for k in range(workers):
+        share = (len(items) - len(ordered)) // (workers - k)
+        first = slow[k::workers]
+        take = max(0, share - len(first))
+        ordered += first + rest[:take]
+        rest = rest[take:]
+    return ordered
 
 
 def pytest_sessionfinish(session, exitstatus):
@@ -90,6 +111,8 @@ def pytest_unconfigure(config):
 def make_dataset(tmp_path: Path):
     """Factory: make_dataset(presses=6, frames_per_press=40, image_size=64, ...) -> Path."""
 
+    from helpers.synthetic_presses import write_synthetic_dataset
+
     def make(
         presses: int = 6,
         frames_per_press: int = 40,
@@ -105,28 +128,17 @@ def make_dataset(tmp_path: Path):
     return make
 
 
-@pytest.fixture
-def tiny_model() -> PressureModel:
-    """An untrained width-8, 15-frame model for 64x64 frames."""
-    torch.manual_seed(0)
-    meta = CheckpointMeta(
-        model=ModelConfig(frames=15, width=8),
-        geometry=TINY,
-        pixel_mean=[120.0, 120.0, 120.0],
-        pixel_std=[40.0, 40.0, 40.0],
-        output_scale_kpa=10.0,
-    )
-    return PressureModel.create(meta)
+def untrained_model(model: ModelConfig, seed: int) -> PressureModel:
+    """An untrained model of this shape for 64x64 frames (output scale 10 kPa)."""
+    import torch
 
+    from beadsight.checkpoint import CheckpointMeta, PressureModel
+    from beadsight.config import SensorGeometry
 
-@pytest.fixture(scope="session")
-def probe_model() -> PressureModel:
-    """An untrained width-8, 15-frame model for 64x64 frames (output scale 10 kPa), shared by
-    a session: inference tests must not change it."""
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
     meta = CheckpointMeta(
-        model=ModelConfig(frames=15, width=8),
-        geometry=TINY,
+        model=model,
+        geometry=SensorGeometry(image_size_px=64),
         pixel_mean=[120.0] * 3,
         pixel_std=[40.0] * 3,
         output_scale_kpa=10.0,
@@ -134,9 +146,28 @@ def probe_model() -> PressureModel:
     return PressureModel.create(meta)
 
 
+@pytest.fixture
+def tiny_model() -> PressureModel:
+    """An untrained width-8, 15-frame model for 64x64 frames."""
+    from beadsight.config import ModelConfig
+
+    return untrained_model(ModelConfig(frames=15, width=8), seed=0)
+
+
+@pytest.fixture(scope="session")
+def probe_model() -> PressureModel:
+    """:func:`tiny_model`, shared by a session: inference tests must not change it."""
+    from beadsight.config import ModelConfig
+
+    return untrained_model(ModelConfig(frames=15, width=8), seed=0)
+
+
 @pytest.fixture(scope="session")
 def strided_model(probe_model) -> PressureModel:
     """probe_model's weights, seeing every 3rd frame of a 43-frame window."""
+    from beadsight.checkpoint import PressureModel
+    from beadsight.config import ModelConfig
+
     model = PressureModel.create(
         dataclasses.replace(probe_model.meta, model=ModelConfig(frames=15, frame_stride=3, width=8))
     )
@@ -159,15 +190,10 @@ def rest_norm_model() -> PressureModel:
 
 def make_rest_model(rest_norm: bool = False) -> PressureModel:
     """:func:`rest_model`'s model, its rest input contrast-normalised with ``rest_norm``."""
-    torch.manual_seed(1)
-    meta = CheckpointMeta(
-        model=ModelConfig(frames=4, frame_stride=2, width=8, rest_input=True, rest_norm=rest_norm),
-        geometry=TINY,
-        pixel_mean=[120.0] * 3,
-        pixel_std=[40.0] * 3,
-        output_scale_kpa=10.0,
-    )
-    return PressureModel.create(meta)
+    from beadsight.config import ModelConfig
+
+    shape = ModelConfig(frames=4, frame_stride=2, width=8, rest_input=True, rest_norm=rest_norm)
+    return untrained_model(shape, seed=1)
 
 
 @pytest.fixture
@@ -196,6 +222,8 @@ def full_disk(tmp_path: Path):
 @pytest.fixture
 def one_torch_thread():
     """The test machine is shared: one intra-op thread avoids spin-wait thrashing."""
+    import torch
+
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
@@ -208,6 +236,9 @@ def rest_run(tmp_path_factory) -> tuple[Path, Path]:
 
     The dataset: 6 presses of 40 frames at 32 px (the first press has no rest image before
     it); the model: width 4, 3 frames, its split stored in the checkpoint."""
+    import torch
+    from helpers.synthetic_presses import write_synthetic_dataset
+
     from beadsight.train.config import TrainConfig
     from beadsight.train.trainer import train
 

@@ -48,6 +48,7 @@ def base(tiny_model, tmp_path):
     return tiny_model.save(tmp_path / "base.pt")
 
 
+@pytest.mark.slow
 def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     make_dataset, tmp_path, capsys
 ):
@@ -195,6 +196,7 @@ def test_bad_inputs_get_clear_errors(make_dataset, base, tmp_path, capsys):
 
 
 # --- rest-referenced base models -------------------------------------------------------
+@pytest.mark.slow
 def test_calibrate_a_rest_referenced_base(rest_run, tmp_path):
     """A rest-referenced base is scored, fine-tuned and scored again on inputs with their
     rest images (the dataset rule), and stays rest-referenced. (--skip 1: press 0 has no

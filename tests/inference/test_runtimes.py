@@ -89,7 +89,6 @@ def test_backend_agrees_with_torch(probe_model, name, precision, module):
     backend.close()
 
 
-@pytest.mark.slow
 def _incremental_matches_run(backend: Backend, model: PressureModel, frames: np.ndarray):
     """Stream frames through run_incremental (1 new frame per call, a jump of 3, a full
     refill, a stateless run in between) and compare each output with model.predict."""
