@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from helpers.inference import T, stream
+from helpers.isolated import run_isolated
 
 from beadsight.checkpoint import PressureModel
 from beadsight.inference.machine import default_threads, usable_cores
@@ -202,3 +203,28 @@ def test_one_input_path(strided_model, monkeypatch):
     monkeypatch.setattr(strided_model.module, "output_scale_kpa", torch.tensor(20.0))
     after = stream_matches(TorchBackend(strided_model))
     assert all(np.abs(a - 2 * b).max() > 1e-3 for a, b in zip(after, before, strict=True))
+
+
+def test_openvino_runtimes_closed_in_order_leave_python_signal_handlers_working():
+    """Two OpenVINO runtimes closed in the order they were made (auto selection drops its
+    candidates so), then a signal with a Python handler, as Ctrl-C has: the process used to
+    die of SIGSEGV (each CPU plugin puts back the alternate signal stack it found, the last
+    one put back was a freed plugin's). In a child, so that a crash fails only this test."""
+    proc = run_isolated(
+        """
+        import gc, os, signal
+        from beadsight.assets import shipped_model_path
+        from beadsight.checkpoint import load_checkpoint
+        from beadsight.inference.select import build_backend
+        model = load_checkpoint(shipped_model_path())
+        first = build_backend(model, "openvino", "fp32", cache_dir=None)
+        second = build_backend(model, "openvino", "fp32", cache_dir=None)
+        first.close(); del first; gc.collect()
+        second.close(); del second; gc.collect()
+        handled = []
+        signal.signal(signal.SIGUSR1, lambda *_: handled.append(True))
+        os.kill(os.getpid(), signal.SIGUSR1)
+        print("handled", handled)
+        """
+    )
+    assert proc.returncode == 0 and "handled [True]" in proc.stdout, proc.stderr

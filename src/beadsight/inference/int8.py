@@ -41,7 +41,7 @@ from beadsight.files import atomic_write, atomic_write_json
 from beadsight.inference.backend import BackendUnavailableError
 from beadsight.inference.config import INT8
 from beadsight.inference.export_format import model_fingerprint
-from beadsight.inference.machine import import_openvino, machine_key
+from beadsight.inference.machine import import_openvino, machine_key, openvino_signal_stack_kept
 from beadsight.inference.metric_parity import (
     GATE_KEY,
     MetricParity,
@@ -158,7 +158,8 @@ def quantize(
     level = nncf_log.level
     nncf_log.setLevel(logging.WARNING)
     try:
-        with contextlib.redirect_stdout(sys.stderr):  # its progress bar: keep stdout clean
+        # its progress bar: keep stdout clean; its statistics run on the CPU plugin
+        with contextlib.redirect_stdout(sys.stderr), openvino_signal_stack_kept():
             quantized = nncf.quantize(
                 ov_model, data, subset_size=len(windows), **recipe.nncf_options(nncf)
             )
@@ -219,7 +220,8 @@ class Int8Backend(OpenVinoBackend):
             "PERFORMANCE_HINT": "LATENCY",
             "NUM_STREAMS": 1,
         }
-        self.compiled = ov.Core().compile_model(str(xml), "CPU", config)
+        with openvino_signal_stack_kept():
+            self.compiled = ov.Core().compile_model(str(xml), "CPU", config)
         self.request = self.compiled.create_infer_request()
         self.config = config
         self.quantized_path = xml

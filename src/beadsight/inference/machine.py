@@ -6,11 +6,14 @@ library versions they were made with; :func:`machine_key` names those.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import hashlib
 import importlib.util
 import os
 import platform
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -30,6 +33,43 @@ def import_openvino() -> ModuleType:
     import openvino
 
     return openvino
+
+
+class _SignalStack(ctypes.Structure):
+    _fields_ = [
+        ("ss_sp", ctypes.c_void_p),
+        ("ss_flags", ctypes.c_int),
+        ("ss_size", ctypes.c_size_t),
+    ]
+
+
+@contextlib.contextmanager
+def openvino_signal_stack_kept() -> Iterator[None]:
+    """Run OpenVINO work that may load its CPU plugin; afterwards the thread's alternate
+    signal stack is the one it had before.
+
+    Each loaded CPU plugin installs its own alternate stack on the loading thread and, when
+    unloaded, puts back the one it found there. Two runtimes closed in the order they were
+    made (auto selection drops its candidates) left the thread on the first plugin's freed
+    stack: the next signal with a Python handler (Ctrl-C, torch's SIGCHLD handler) then
+    killed the process with SIGSEGV. Inside this, each plugin finds and later restores the
+    thread's own stack. A no-op where libc has no ``sigaltstack``."""
+    sigaltstack = getattr(ctypes.CDLL(None), "sigaltstack", None) if os.name == "posix" else None
+    if sigaltstack is None:
+        yield
+        return
+    before, now = _SignalStack(), _SignalStack()
+    sigaltstack(None, ctypes.byref(before))
+    try:
+        yield
+    finally:
+        sigaltstack(None, ctypes.byref(now))
+        if (now.ss_sp, now.ss_size, now.ss_flags) != (
+            before.ss_sp,
+            before.ss_size,
+            before.ss_flags,
+        ):
+            sigaltstack(ctypes.byref(before), None)
 
 
 def default_cache_dir() -> Path:
@@ -108,7 +148,8 @@ def machine_key() -> str:
     except ImportError:
         parts.append("openvino=none")
     else:
-        caps = ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+        with openvino_signal_stack_kept():
+            caps = ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
         parts += [f"openvino={ov.__version__}", ",".join(caps)]
     if torch.cuda.is_available():
         parts.append(torch.cuda.get_device_name(0))

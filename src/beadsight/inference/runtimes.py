@@ -54,7 +54,11 @@ from beadsight.inference.backend import (
     BackendUnavailableError,
 )
 from beadsight.inference.export_format import model_fingerprint, write_onnx
-from beadsight.inference.machine import default_threads, import_openvino
+from beadsight.inference.machine import (
+    default_threads,
+    import_openvino,
+    openvino_signal_stack_kept,
+)
 
 log = logging.getLogger(__name__)
 
@@ -247,8 +251,9 @@ def openvino_supports_bf16(core: Any = None) -> bool:
         ov = import_openvino()
     except ImportError:
         return False
-    core = core or ov.Core()
-    return "BF16" in core.get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+    with openvino_signal_stack_kept():
+        core = core or ov.Core()
+        return "BF16" in core.get_property("CPU", "OPTIMIZATION_CAPABILITIES")
 
 
 class OpenVinoBackend(_ModelFileBackend):
@@ -263,23 +268,24 @@ class OpenVinoBackend(_ModelFileBackend):
             raise BackendUnavailableError(
                 "openvino: not installed; `pip install beadsight[openvino]`"
             ) from None
-        core = ov.Core()
-        if self.precision == "bf16" and not openvino_supports_bf16(core):
-            raise BackendUnavailableError("openvino: this CPU has no native bf16")
-        ov_model = core.read_model(str(path))
-        ov_model.reshape({ov_model.inputs[0]: list(self._shape)})
-        config = {
-            "INFERENCE_PRECISION_HINT": "bf16" if self.precision == "bf16" else "f32",
-            "INFERENCE_NUM_THREADS": threads,
-            "PERFORMANCE_HINT": "LATENCY",
-            "NUM_STREAMS": 1,
-        }
-        if cache_dir:
-            (Path(cache_dir) / "openvino").mkdir(parents=True, exist_ok=True)
-            config["CACHE_DIR"] = str(Path(cache_dir) / "openvino")
-        self.compiled = core.compile_model(ov_model, "CPU", config)
-        self.request = self.compiled.create_infer_request()
-        self.config = config
+        with openvino_signal_stack_kept():  # the CPU plugin loads here
+            core = ov.Core()
+            if self.precision == "bf16" and not openvino_supports_bf16(core):
+                raise BackendUnavailableError("openvino: this CPU has no native bf16")
+            ov_model = core.read_model(str(path))
+            ov_model.reshape({ov_model.inputs[0]: list(self._shape)})
+            config = {
+                "INFERENCE_PRECISION_HINT": "bf16" if self.precision == "bf16" else "f32",
+                "INFERENCE_NUM_THREADS": threads,
+                "PERFORMANCE_HINT": "LATENCY",
+                "NUM_STREAMS": 1,
+            }
+            if cache_dir:
+                (Path(cache_dir) / "openvino").mkdir(parents=True, exist_ok=True)
+                config["CACHE_DIR"] = str(Path(cache_dir) / "openvino")
+            self.compiled = core.compile_model(ov_model, "CPU", config)
+            self.request = self.compiled.create_infer_request()
+            self.config = config
 
     def _run(self, window: np.ndarray) -> np.ndarray:
         self.request.infer({0: window}, share_inputs=True, share_outputs=True)
