@@ -198,9 +198,10 @@ def test_bad_inputs_get_clear_errors(make_dataset, base, tmp_path, capsys):
 # --- rest-referenced base models -------------------------------------------------------
 @pytest.mark.slow
 def test_calibrate_a_rest_referenced_base(rest_run, tmp_path):
-    """A rest-referenced base is scored, fine-tuned and scored again on inputs with their
-    rest images (the dataset rule), and stays rest-referenced. (--skip 1: press 0 has no
-    rest image before it.)"""
+    """A rest-referenced base is aligned (its force gain) and its candidates are scored on
+    inputs with their rest images (the dataset rule); what is written stays rest-referenced.
+    (--skip 1: press 0 has no rest image before it. A 15 s budget leaves no time to
+    fine-tune: that needs 30 s a candidate.)"""
     data, base = rest_run
     out = tmp_path / "cal"
     config = CalibrateConfig(
