@@ -56,37 +56,15 @@ pytest_plugins = ("pytester",)  # tests/test_ci_policy.py runs this file's polic
 
 def pytest_collection_modifyitems(config, items):
     """GPU tests are collected only where a CUDA device exists: on a CPU-only machine they are
-    deselected (counted as such), not skipped. ../shared/gpu-checklist.md runs them on a GPU.
-    Under xdist, the slow tests go first in each worker's share (:func:`slow_first`)."""
+    deselected (counted as such), not skipped. ../shared/gpu-checklist.md runs them on a GPU."""
     import torch
 
-    if not torch.cuda.is_available():
-        gpu = [item for item in items if item.get_closest_marker("gpu")]
-        if gpu:
-            config.hook.pytest_deselected(items=gpu)
-            items[:] = [item for item in items if not item.get_closest_marker("gpu")]
-    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-    if workers > 1:
-        items[:] = slow_first(items, workers)
-
-
-def slow_first(items: list, workers: int) -> list:
-    """The tests in an order where each worker's share starts with its part of the ``slow``
-    ones. xdist's worksteal hands worker k the next ``len(left) // (workers - k)`` tests in
-    order, and a worker that runs out takes the back half of the busiest one's queue: with the
-    slow tests at the front of each share, the run ends on short tests that the workers can
-    share out. Before, a slow test near the end of a share (18 s) often ran last, alone. The
-    other tests keep their order, each module's together."""
-    slow = [item for item in items if item.get_closest_marker("slow")]
-    rest = [item for item in items if not item.get_closest_marker("slow")]
-    ordered: list = []
-    for k in range(workers):
-        share = (len(items) - len(ordered)) // (workers - k)
-        first = slow[k::workers]
-        take = max(0, share - len(first))
-        ordered += first + rest[:take]
-        rest = rest[take:]
-    return ordered
+    if torch.cuda.is_available():
+        return
+    gpu = [item for item in items if item.get_closest_marker("gpu")]
+    if gpu:
+        config.hook.pytest_deselected(items=gpu)
+        items[:] = [item for item in items if not item.get_closest_marker("gpu")]
 
 
 def pytest_sessionfinish(session, exitstatus):

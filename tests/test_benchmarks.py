@@ -73,7 +73,6 @@ def test_steady_press_judges_the_held_frames_and_counts_rests_under_load():
     assert steady.judge(rows, [1003.8 + 8 / FPS / 4]).rests_while_loaded == 0  # t = 15.47 s
 
 
-@pytest.mark.slow
 def test_live_offline_scores_both_rows_on_a_simulated_dataset(tmp_path, capsys):
     """End to end through the real CLI: simulate, evaluate, live replay, compare."""
     from helpers.cli import beadsight_ok

@@ -27,7 +27,6 @@ REPORT_FILES = (
 )
 
 
-@pytest.mark.slow
 def test_demo_with_a_checkpoint(tmp_path, tiny_model, capsys):
     checkpoint = tiny_model.save(tmp_path / "tiny.pt")
     out = tmp_path / "report"

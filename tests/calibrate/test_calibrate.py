@@ -48,7 +48,6 @@ def base(tiny_model, tmp_path):
     return tiny_model.save(tmp_path / "base.pt")
 
 
-@pytest.mark.slow
 def test_calibrate_cli_with_the_default_base_writes_model_metrics_report(
     make_dataset, tmp_path, capsys
 ):
@@ -196,7 +195,6 @@ def test_bad_inputs_get_clear_errors(make_dataset, base, tmp_path, capsys):
 
 
 # --- rest-referenced base models -------------------------------------------------------
-@pytest.mark.slow
 def test_calibrate_a_rest_referenced_base(rest_run, tmp_path):
     """A rest-referenced base is aligned (its force gain) and its candidates are scored on
     inputs with their rest images (the dataset rule); what is written stays rest-referenced.

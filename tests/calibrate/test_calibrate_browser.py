@@ -27,7 +27,6 @@ FIGURES = [
 ]
 
 
-@pytest.mark.slow
 def test_calibration_report_in_chromium(make_dataset, tiny_model, tmp_path):
     from playwright import sync_api
 

@@ -146,7 +146,6 @@ PROCESS_START_S = 6.0
 BUDGET_MIN = 0.3
 
 
-@pytest.mark.slow
 def test_the_budget_bound_holds_evaluations_included(make_dataset, base, tmp_path):
     data = make_dataset(presses=12, frames_per_press=60)
     out = tmp_path / "cal"

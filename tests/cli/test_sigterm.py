@@ -47,7 +47,6 @@ def _terminate(proc: subprocess.Popen) -> tuple[str, str]:
         proc.kill()
 
 
-@pytest.mark.slow
 def test_live_on_sigterm_prints_its_summary_and_finishes_the_recording(tmp_path):
     frames, _ = press_frames(presses=2, per_press=30)
     video = write_video(tmp_path / "v.avi", frames, fps=30)
@@ -109,7 +108,6 @@ def test_collect_on_sigterm_lifts_the_finger_and_keeps_the_recording(tmp_path):
     assert not list(out.glob("*.partial"))
 
 
-@pytest.mark.slow
 def test_train_on_sigterm_saves_last_pt_and_exits_143(tmp_path):
     data = write_synthetic_dataset(tmp_path / "d.h5", 6, 40, 64, 0, 30.0)
     run = tmp_path / "run"

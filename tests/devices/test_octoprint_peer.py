@@ -27,7 +27,6 @@ pytestmark = pytest.mark.skipif(
 )
 
 
-@pytest.mark.slow
 def test_press_session_against_octoprint_virtual_printer():
     env = dict(os.environ, PYTHONPATH=str(Path(beadsight.__file__).parents[1]))
     run = subprocess.run(

@@ -149,7 +149,6 @@ def test_a_requested_rest_replaces_a_stale_one_that_reads_as_a_load():
     watch.close()
 
 
-@pytest.mark.slow
 def test_no_false_alarm_on_a_clean_simulator_with_presses():
     first = drift_timeline(None, 60.0, image_size=SIZE, presses=True)
     assert set(first) == {"unknown", "ok"}, first

@@ -176,7 +176,6 @@ def test_cli_export(checkpoint, tmp_path, capsys):
     assert "nope.pt" in capsys.readouterr().err
 
 
-@pytest.mark.slow
 def test_openvino_export_sends_no_telemetry_and_writes_nothing_home(checkpoint, tmp_path):
     """``import openvino`` (and its converter, ``convert_model``) report usage to Google
     Analytics and write ``~/intel`` unless a consent file or CI=true says no.

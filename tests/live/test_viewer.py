@@ -54,7 +54,6 @@ def sensing_rate(sensor: LiveSensor, seconds: float, windows: int = 2) -> float:
     return max(rates)
 
 
-@pytest.mark.slow
 def test_200_idle_event_streams_do_not_slow_sensing(model):
     with (
         LiveSensor(model, "sim", replace(TORCH, source_fps=30)) as sensor,

@@ -23,7 +23,6 @@ pytestmark = [
 ]
 
 
-@pytest.mark.slow
 def test_viewer_shows_live_readings_then_no_signal(tmp_path):
     from playwright import sync_api as playwright_api
 

@@ -259,6 +259,7 @@ def test_segmentation_finds_every_mixed_press():
     assert all(index[b - 1] == index[a] for a, b in presses)
 
 
+@pytest.mark.slow
 def test_mixed_dataset_through_the_cli_with_workers(tmp_path):
     out = tmp_path / "mixed.h5"
     args = ["simulate", "--out", str(out), "--presses", "2", "--pouches", "2", "--workers", "2"]

@@ -194,7 +194,6 @@ def test_loader_augments_train_batches_exactly_as_planned(tiny):
     np.testing.assert_array_equal(frames[0].numpy(), host[0][0].numpy())
 
 
-@pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_host_loader_with_workers_matches_device_loader(tiny):
     path, ds = tiny
