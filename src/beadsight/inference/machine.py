@@ -64,11 +64,7 @@ def openvino_signal_stack_kept() -> Iterator[None]:
         yield
     finally:
         sigaltstack(None, ctypes.byref(now))
-        if (now.ss_sp, now.ss_size, now.ss_flags) != (
-            before.ss_sp,
-            before.ss_size,
-            before.ss_flags,
-        ):
+        if bytes(now) != bytes(before):
             sigaltstack(ctypes.byref(before), None)
 
 
