@@ -209,10 +209,13 @@ def test_openvino_runtimes_closed_in_order_leave_python_signal_handlers_working(
     """Two OpenVINO runtimes closed in the order they were made (auto selection drops its
     candidates so), then a signal with a Python handler, as Ctrl-C has: the process used to
     die of SIGSEGV (each CPU plugin puts back the alternate signal stack it found, the last
-    one put back was a freed plugin's). In a child, so that a crash fails only this test."""
+    one put back was a freed plugin's). Then a child that ends while the interpreter exits,
+    with a SIGCHLD handler as torch's DataLoader installs: that one died silently at exit
+    (rc 139, no faulthandler output: faulthandler's handler needs the same stack). In a
+    child, so that a crash fails only this test."""
     proc = run_isolated(
         """
-        import gc, os, signal
+        import atexit, gc, os, signal, subprocess, time
         from beadsight.assets import shipped_model_path
         from beadsight.checkpoint import load_checkpoint
         from beadsight.inference.select import build_backend
@@ -225,6 +228,9 @@ def test_openvino_runtimes_closed_in_order_leave_python_signal_handlers_working(
         signal.signal(signal.SIGUSR1, lambda *_: handled.append(True))
         os.kill(os.getpid(), signal.SIGUSR1)
         print("handled", handled)
+        signal.signal(signal.SIGCHLD, lambda *_: None)
+        subprocess.Popen(["sleep", "0.2"])
+        atexit.register(time.sleep, 0.5)  # the child ends while the interpreter exits
         """
     )
     assert proc.returncode == 0 and "handled [True]" in proc.stdout, proc.stderr
