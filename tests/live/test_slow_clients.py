@@ -160,10 +160,7 @@ def test_foxglove_client_reading_10_messages_a_second_gets_fresh_readings():
     calling thread, with default socket buffers and its library keeping one message
     (``max_queue=1``), reads messages at most MAX_AGE_S old at p95 (capture time -> the
     moment it reads them); the server sent one message at a time and counted the rest.
-
-    The target (issue 27 item 3) is MAX_AGE_S at p95; measured on the shared 2-core test
-    machine (load 5-7) this client got 0.63-0.89 s at p95 (0.34-0.50 s at p50), so this
-    test holds the design to twice the target until the rest is found (docs/live.md)."""
+    Measured alone: 0.35 s at p95 (docs/live.md)."""
     sensor, server = _serve()
     ages = []
     try:
@@ -187,7 +184,7 @@ def test_foxglove_client_reading_10_messages_a_second_gets_fresh_readings():
     finally:
         sensor.stop()
         server.finish()
-    assert np.percentile(ages[10:], 95) <= 2 * MAX_AGE_S, np.percentile(ages[10:], [50, 95, 100])
+    assert np.percentile(ages[10:], 95) <= MAX_AGE_S, np.percentile(ages[10:], [50, 95, 100])
     assert server.client_skipped > 200  # about 120 messages/s offered, 10/s read
 
 

@@ -11,13 +11,15 @@ encodes (``foxglove.messages``) and gives the schemas; this module serves them:
   most :data:`MAX_CLIENTS` clients at once (``503`` beyond). A client must offer one of
   :data:`SUBPROTOCOLS` (``400`` otherwise) and finish its handshake within
   :data:`OPEN_TIMEOUT_S`; what it sends is at most :data:`MAX_CLIENT_MESSAGE_BYTES`.
-* **Pacing: one reading in flight per client.** The newest reading's messages are sent,
-  then a WebSocket ping; the next reading goes out once the client's pong says it has read
-  them off its socket. Readings that arrive meanwhile replace the one waiting (counted in
-  ``skipped``), and a reading older than ``max_age_s`` when its turn comes is skipped too.
-  So nothing queues in the server or the kernel for a slow client: what it reads is at
-  most one reading behind. A fast client (the Foxglove app) answers within a round trip
-  and gets every reading. A client silent for :data:`PONG_TIMEOUT_S` is disconnected.
+* **Pacing: credit by the client's pongs.** Each message is followed by a WebSocket ping,
+  whose pong says the client has read it off its socket. A client may have as many
+  messages awaiting their pong as it reads in :data:`CREDIT_S` at the rate its pongs
+  came over the last second (at least one): a slow client one, a fast one (the Foxglove
+  app) enough that the round trip does not slow it. Readings that arrive meanwhile
+  replace the one waiting (counted in ``skipped``), and a reading older than
+  ``max_age_s`` when its turn comes is skipped too. So nothing queues in the server or
+  the kernel for a slow client. A client silent for :data:`PONG_TIMEOUT_S` is
+  disconnected.
 """
 
 from __future__ import annotations
@@ -45,8 +47,9 @@ logger = logging.getLogger(__name__)
 SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")  # same ops for what we serve
 OPEN_TIMEOUT_S = 5.0  # a client must finish its WebSocket handshake within this
 PONG_TIMEOUT_S = 10.0  # a client that has not read its reading for this long is dropped
-PROMPT_PONG_S = 0.02  # a pong within this: the client keeps up (more frames may be in flight)
-MAX_IN_FLIGHT = 8  # frames awaiting their pong for a client that keeps up (2 readings)
+CREDIT_S = 0.1  # a client may have in flight as many frames as it reads in this time
+RATE_S = 1.0  # ... at its rate of answers over this time
+MAX_IN_FLIGHT = 8  # ... but never more (2 readings)
 CLOSE_TIMEOUT_S = 1.0  # closing waits this long for a client's close frame
 MAX_CLIENT_MESSAGE_BYTES = 64 * 1024  # subscribe/unsubscribe ops are far smaller
 MAX_WAITING_OPS = 64  # status/health messages waiting for a slow client (oldest dropped)
@@ -106,11 +109,14 @@ class _Client:
         self.wake.set()
 
     def offer(self, item: Any) -> None:
-        """An op (text) or a message ``(channel, log_ns, payload)`` sent in order, after
-        the reading messages already waiting (so "ended" follows the last reading)."""
-        for channel, (produced_s, log_ns, payload) in self.newest.items():
-            self.ordered.append((channel, log_ns, payload, produced_s))
-        self.newest.clear()
+        """An op (text), sent after the reading messages already waiting (so "ended"
+        follows the last reading), or a message ``(channel, log_ns, payload)`` (health),
+        sent in order with the ops and before the readings waiting: it moves none of them
+        into the order, where newer readings could no longer replace them."""
+        if isinstance(item, str):
+            for channel, (produced_s, log_ns, payload) in self.newest.items():
+                self.ordered.append((channel, log_ns, payload, produced_s))
+            self.newest.clear()
         self.ordered.append(item if isinstance(item, str) else (*item, None))
         self.wake.set()
 
@@ -290,28 +296,37 @@ class FoxgloveWebSocket:
         client.subscriptions = subs
 
     async def _send_loop(self, client: _Client) -> None:
-        """Send one frame at a time, each followed by a ping; while the client answers
-        within :data:`PROMPT_PONG_S`, up to :data:`MAX_IN_FLIGHT` frames may await their
-        pong, else one (the client is behind: it gets the newest of each channel next)."""
-        in_flight: deque[tuple[float, Any]] = deque()  # (sent monotonic s, pong waiter)
-        window = 1
+        """Send one frame at a time, each followed by a ping. A client may have as many
+        frames awaiting their pong as it answers in :data:`CREDIT_S`, at its rate over the
+        last :data:`RATE_S` (at least one, at most :data:`MAX_IN_FLIGHT`). The rate, not
+        how fast one pong came: a client library answers the pings of every frame it takes
+        off the socket at once, however slowly its application reads them."""
+        in_flight: deque[Any] = deque()  # pong waiters, oldest first
+        answered: deque[float] = deque()  # when each pong of the last RATE_S came
+
+        def window() -> int:
+            while answered and answered[0] < time.monotonic() - RATE_S:
+                answered.popleft()
+            return min(max(int(len(answered) * CREDIT_S / RATE_S), 1), MAX_IN_FLIGHT)
+
+        async def pong() -> None:
+            await asyncio.wait_for(in_flight.popleft(), PONG_TIMEOUT_S)
+            answered.append(time.monotonic())
+
         try:
             while True:
-                while len(in_flight) >= window:
-                    sent_s, pong = in_flight.popleft()
-                    await asyncio.wait_for(pong, PONG_TIMEOUT_S)
-                    prompt = time.monotonic() - sent_s <= PROMPT_PONG_S
-                    window = min(window + 1, MAX_IN_FLIGHT) if prompt else 1
+                while len(in_flight) >= window():
+                    await pong()
                 frame = client.next_frame(self.max_age_s)
                 if frame is None:
-                    if in_flight:  # learn from the pongs while nothing waits
-                        window = len(in_flight)
+                    if in_flight:  # nothing to send: take the pongs due meanwhile
+                        await pong()
                         continue
                     client.wake.clear()
                     await client.wake.wait()
                     continue
                 await asyncio.wait_for(client.ws.send(frame), PONG_TIMEOUT_S)
-                in_flight.append((time.monotonic(), await client.ws.ping()))
+                in_flight.append(await client.ws.ping())
         except TimeoutError:
             logger.warning(
                 "foxglove: client %s read nothing for %.0f s: disconnected",
