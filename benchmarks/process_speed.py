@@ -107,8 +107,8 @@ def synthesize(raw: Path, frames: int, unique: int) -> None:
 _CHILD = """
 import json, resource, sys, time
 from beadsight.inference.machine import cpu_summary
-from beadsight.data.process import process_recording
-from beadsight.data.process_config import ProcessConfig
+from beadsight.data.process.run import process_recording
+from beadsight.data.process.config import ProcessConfig
 config = ProcessConfig(**json.loads(sys.argv[3]))
 def cpu():
     r = resource.getrusage(resource.RUSAGE_SELF)
@@ -152,8 +152,8 @@ def stage_costs(raw: Path, config: dict, repeats: int = 3) -> dict[str, float]:
 
     from beadsight.config import SensorGeometry
     from beadsight.data.dataset_writer import DatasetWriter
-    from beadsight.data.images import DECODE_FLAGS
-    from beadsight.data.process_config import ProcessConfig
+    from beadsight.data.process.config import ProcessConfig
+    from beadsight.data.process.images import DECODE_FLAGS
     from beadsight.data.recording import VIDEO_NAME, iter_video
     from beadsight.preprocess import Preprocessor
 

@@ -94,7 +94,7 @@ def _parse(*argv: str):
 
 
 def test_cli_defaults_are_the_config_dataclasses_defaults():
-    from beadsight.data.process_config import ProcessConfig
+    from beadsight.data.process.config import ProcessConfig
     from beadsight.demo.config import DemoConfig
     from beadsight.rig.collect import collect
     from beadsight.rig.config import DeviceSpec, VirtualRigSpec

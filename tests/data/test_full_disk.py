@@ -12,8 +12,8 @@ from beadsight.cli import main
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset import open_dataset
 from beadsight.data.dataset_writer import DatasetWriter
-from beadsight.data.process import process_recording
-from beadsight.data.process_config import ProcessConfig
+from beadsight.data.process.config import ProcessConfig
+from beadsight.data.process.run import process_recording
 from beadsight.files import WriteError
 
 

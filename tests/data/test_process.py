@@ -17,13 +17,13 @@ from helpers.recording import (
 from beadsight.cli import main
 from beadsight.config import ConfigError
 from beadsight.data.dataset import open_dataset
-from beadsight.data.process import (
+from beadsight.data.process.config import ProcessConfig
+from beadsight.data.process.run import (
     hold_positions,
     interpolate_force,
     process_recording,
     qa_paths,
 )
-from beadsight.data.process_config import ProcessConfig
 from beadsight.data.recording import RecordingError, open_recording
 
 SMALL = ProcessConfig(image_size=32, workers=2, batch_frames=16)

@@ -20,8 +20,8 @@ from helpers.recording import (
 
 from beadsight.cli import main
 from beadsight.data.dataset import open_dataset
-from beadsight.data.process import process_recording
-from beadsight.data.process_config import ProcessConfig
+from beadsight.data.process.config import ProcessConfig
+from beadsight.data.process.run import process_recording
 from beadsight.data.recording import RecordingError, open_recording
 from beadsight.files import OutputExistsError
 

@@ -18,8 +18,8 @@ from helpers.cli import beadsight_ok
 from beadsight.cli import main
 from beadsight.config import ConfigError
 from beadsight.data.dataset import open_dataset
-from beadsight.data.process import process_recording
-from beadsight.data.process_config import ProcessConfig
+from beadsight.data.process.config import ProcessConfig
+from beadsight.data.process.run import process_recording
 from beadsight.data.recording import open_recording, read_events, read_session
 from beadsight.rig.collect import (
     DeviceSpec,

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from beadsight.geometry import mm_to_px
-from beadsight.sim import PouchSimulator, SimConfig, render
-from beadsight.sim.fisheye import raw_to_sensor_maps
+from beadsight.sim import PouchSimulator, SimConfig
+from beadsight.sim.optics import render
+from beadsight.sim.optics.fisheye import raw_to_sensor_maps
+from beadsight.sim.optics.render import SensorRenderer
 from beadsight.sim.pouch import PouchView
-from beadsight.sim.render import SensorRenderer
 
 DT = 1 / 30
 CLEAN = dict(noise_std=0.0, raw_noise_std=0.0, flicker=0.0, raw_jpeg_quality=None)

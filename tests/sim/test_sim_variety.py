@@ -19,8 +19,8 @@ from beadsight.cli import main
 from beadsight.data.dataset import open_dataset
 from beadsight.errors import ConfigError
 from beadsight.sim import PouchSimulator, SimConfig, SimulatedSession, simulate_dataset
-from beadsight.sim.camera import camera_is_reference, view_maps
-from beadsight.sim.light import colour_temperature_rgb
+from beadsight.sim.optics.camera import camera_is_reference, view_maps
+from beadsight.sim.optics.light import colour_temperature_rgb
 from beadsight.sim.variety import (
     FACTOR_NAMES,
     FACTORS,

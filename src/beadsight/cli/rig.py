@@ -2,7 +2,7 @@
 
 Options and their defaults come from the dataclasses the commands build:
 :class:`~beadsight.rig.config.DeviceSpec`, :class:`~beadsight.rig.config.VirtualRigSpec`,
-:class:`~beadsight.rig.plan.PressPlan` and :class:`~beadsight.data.process_config.ProcessConfig`.
+:class:`~beadsight.rig.plan.PressPlan` and :class:`~beadsight.data.process.config.ProcessConfig`.
 """
 
 from __future__ import annotations
@@ -241,7 +241,7 @@ def _announce(plan) -> None:
 # --- process ---------------------------------------------------------------------------------
 def _process_arguments(p: argparse.ArgumentParser) -> None:
     from beadsight.cli.options import add_fields
-    from beadsight.data.process_config import ProcessConfig
+    from beadsight.data.process.config import ProcessConfig
 
     p.add_argument("raw", type=Path, help="raw recording folder")
     p.add_argument("--out", type=Path, required=True, help="dataset file to write (.h5)")
@@ -257,8 +257,8 @@ def _process(args: argparse.Namespace) -> int:
     HDF5 dataset plus a QA summary (<out>.qa.json, <out>.qa.png).
     """
     from beadsight.cli.options import field_values
-    from beadsight.data.process import process_recording, qa_paths
-    from beadsight.data.process_config import ProcessConfig
+    from beadsight.data.process.config import ProcessConfig
+    from beadsight.data.process.run import process_recording, qa_paths
 
     config = ProcessConfig(**field_values(args, ProcessConfig))
     qa = process_recording(

@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from beadsight.sim.config import SimConfig
+from beadsight.sim.optics.render import SensorRenderer
 from beadsight.sim.pouch import BeadPouch, PouchView
-from beadsight.sim.render import SensorRenderer
 
 _STREAMS = 4  # mechanics, appearance, sensor-space frame noise, raw frame noise
 
@@ -99,7 +99,7 @@ class PouchSimulator:
         maps it back to approximately :meth:`render`'s image.
         """
         if self._raw_camera is None:
-            from beadsight.sim.fisheye import RawCamera
+            from beadsight.sim.optics.fisheye import RawCamera
 
             rng = np.random.default_rng(self._raw_seq)
             self._raw_renderer = SensorRenderer(

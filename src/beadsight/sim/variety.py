@@ -33,7 +33,7 @@ import numpy as np
 
 from beadsight.errors import ConfigError
 from beadsight.sim.config import MIXED_TINTS_RGB, SimConfig
-from beadsight.sim.light import colour_temperature_rgb
+from beadsight.sim.optics.light import colour_temperature_rgb
 
 SPLITS = ("train", "heldout")
 GROUPS = ("pouch", "light", "camera", "image")

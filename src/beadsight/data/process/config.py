@@ -1,6 +1,6 @@
 """How a raw recording becomes a dataset: :class:`ProcessConfig` and the choices it checks.
 
-Its own module so that the stages of :mod:`beadsight.data.process` (labels, images, QA)
+Its own module so that the stages of :mod:`beadsight.data.process.run` (labels, images, QA)
 can take it without importing the module that runs them.
 """
 

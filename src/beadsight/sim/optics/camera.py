@@ -30,7 +30,7 @@ import numpy as np
 
 from beadsight.preprocess import REFERENCE_SQUARE_PX, reference_crop, reference_focal_lengths
 from beadsight.sim.config import SimConfig
-from beadsight.sim.light import glare, illumination, split_illumination
+from beadsight.sim.optics.light import glare, illumination, split_illumination
 
 _NEWTON_STEPS = 6  # solving theta (1 + k theta^2) = t: converges to ~1e-12 in 4
 

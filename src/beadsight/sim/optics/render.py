@@ -18,8 +18,8 @@ A frame is composed as:
    than in a few coarse steps;
 3. the LEDs' illumination and the lens's vignetting (one static gain map), a
    per-frame brightness flicker, static glare of the LEDs on the acrylic
-   (:mod:`beadsight.sim.light`); a camera mounted, focused or set up unlike the
-   reference build adds its view, exposure and blur (:mod:`beadsight.sim.camera`);
+   (:mod:`beadsight.sim.optics.light`); a camera mounted, focused or set up unlike the
+   reference build adds its view, exposure and blur (:mod:`beadsight.sim.optics.camera`);
 4. rounding to uint8, sensor noise (pre-generated noise tiles at random offsets,
    added with saturating uint8 arithmetic) and optional MJPG-like JPEG compression.
 
@@ -36,9 +36,9 @@ from collections import OrderedDict
 import cv2
 import numpy as np
 
-from beadsight.sim.camera import Exposure
 from beadsight.sim.config import SimConfig
-from beadsight.sim.light import led_positions_mm, pixel_mm
+from beadsight.sim.optics.camera import Exposure
+from beadsight.sim.optics.light import led_positions_mm, pixel_mm
 from beadsight.sim.pouch import PouchView
 
 # --- sprite quantisation ------------------------------------------------------------

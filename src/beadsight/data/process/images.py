@@ -21,8 +21,8 @@ from tqdm import tqdm
 
 from beadsight.config import ConfigError
 from beadsight.data.dataset_writer import DatasetWriter
-from beadsight.data.frame_labels import FrameLabels
-from beadsight.data.process_config import DECODE_SCALES, ProcessConfig
+from beadsight.data.process.config import DECODE_SCALES, ProcessConfig
+from beadsight.data.process.frame_labels import FrameLabels
 from beadsight.data.recording import Recording, RecordingError, iter_video
 from beadsight.preprocess import Preprocessor
 

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from beadsight.data.dataset import open_dataset
-from beadsight.data.frame_labels import REASONS, FrameLabels
-from beadsight.data.process_config import ProcessConfig
+from beadsight.data.process.config import ProcessConfig
+from beadsight.data.process.frame_labels import REASONS, FrameLabels
 from beadsight.data.recording import Recording
 from beadsight.files import atomic_write, atomic_write_json
 from beadsight.preprocess import Preprocessor

@@ -35,7 +35,7 @@ from beadsight.preprocess import (
     reference_square,
 )
 from beadsight.sim.config import SimConfig
-from beadsight.sim.render import jpeg_roundtrip, noise_tiles
+from beadsight.sim.optics.render import jpeg_roundtrip, noise_tiles
 
 RAW_HW = REFERENCE_INPUT_HW  # (rows, cols) of a raw camera frame
 _EDGE_MARGIN = 2.0  # raw pixels this far (in crop pixels) beyond the field still show it

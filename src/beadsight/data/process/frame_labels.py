@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from beadsight.data.process_config import FORCE_INTERPOLATIONS, ProcessConfig
+from beadsight.data.process.config import FORCE_INTERPOLATIONS, ProcessConfig
 from beadsight.data.recording import Recording
 
 # Reasons a frame is invalid (one per frame; the first that applies, in this order).

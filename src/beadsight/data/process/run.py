@@ -4,13 +4,13 @@
 (:mod:`beadsight.data.recording`) and writes a dataset
 (:class:`beadsight.data.dataset_writer.DatasetWriter`, which also segments presses):
 
-* **Labels** (:mod:`beadsight.data.frame_labels`): force interpolated at each frame time,
+* **Labels** (:mod:`beadsight.data.process.frame_labels`): force interpolated at each frame time,
   never extrapolated; position held from the last executed printer command;
   every invalid frame gets one reason. Dataset timestamps are unix seconds.
-* **Images** (:mod:`beadsight.data.images`): streamed chunk by chunk through a
+* **Images** (:mod:`beadsight.data.process.images`): streamed chunk by chunk through a
   :class:`~beadsight.preprocess.Preprocessor` on a thread pool, so memory stays
   bounded whatever the recording length.
-* **QA** (:mod:`beadsight.data.qa`): ``<dataset>.qa.json`` (presses, dropped frames,
+* **QA** (:mod:`beadsight.data.process.qa`): ``<dataset>.qa.json`` (presses, dropped frames,
   force range, invalid frames and why) and ``<dataset>.qa.png`` (press coverage map).
 """
 
@@ -26,17 +26,17 @@ import numpy as np
 
 from beadsight.config import SensorGeometry
 from beadsight.data.dataset_writer import DatasetWriter
-from beadsight.data.frame_labels import (
+from beadsight.data.plausibility import check_recording
+from beadsight.data.process.config import ProcessConfig
+from beadsight.data.process.frame_labels import (
     REASONS,
     FrameLabels,
     frame_labels,
     hold_positions,
     interpolate_force,
 )
-from beadsight.data.images import choose_decode, input_hw, stream_frames
-from beadsight.data.plausibility import check_recording
-from beadsight.data.process_config import ProcessConfig
-from beadsight.data.qa import plot_qa, qa_paths, quality_summary, write_qa
+from beadsight.data.process.images import choose_decode, input_hw, stream_frames
+from beadsight.data.process.qa import plot_qa, qa_paths, quality_summary, write_qa
 from beadsight.data.recording import Recording, RecordingError, open_recording
 from beadsight.errors import BeadSightError
 from beadsight.files import OutputExistsError, WriteError, partial_path, refuse_existing

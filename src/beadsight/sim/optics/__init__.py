@@ -1,0 +1,3 @@
+"""How the simulated camera sees the pouch: the frame's composition (``render``), the LEDs
+(``light``), the camera's mounting, exposure and blur (``camera``) and its fisheye lens
+(``fisheye``). See ``docs/simulator.md``."""
