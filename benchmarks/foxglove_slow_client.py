@@ -4,6 +4,11 @@ channel reads one message every 0.1 s on the calling thread, and notes each mess
 (capture time -> the moment the client reads it).
 
     PYTHONPATH=src .venv/bin/python benchmarks/foxglove_slow_client.py [--seconds 6]
+        [--period 0.1] [--rtt-ms 0]
+
+``--period 0``: a client that reads as fast as it can (the Foxglove app). ``--rtt-ms``: the
+client reaches the server through a relay that delays every byte by half that in each
+direction, a network round trip.
 
 Rows: the client's WebSocket queue (``max_queue``) and receive buffer (``SO_RCVBUF``).
 Prints one line per row, then a JSON list last.
@@ -13,8 +18,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import queue
 import socket
 import struct
+import threading
 import time
 
 import numpy as np
@@ -30,7 +37,45 @@ ROWS = [("default", 0), (None, 0), (4, 0), (1, 0), (1, 16384)]
 WARMUP_S = 1.0  # ages before this (after the first reading) are not counted
 
 
-def run(max_queue: int | str | None, rcvbuf: int, seconds: float, period_s: float) -> dict:
+class DelayRelay:
+    """One TCP connection relayed to ``127.0.0.1:port`` with every byte delayed by
+    ``one_way_s`` in each direction: a link with that latency and no bandwidth limit."""
+
+    def __init__(self, port: int, one_way_s: float):
+        self.target, self.one_way_s = port, one_way_s
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        near, _ = self.listener.accept()
+        far = socket.create_connection(("127.0.0.1", self.target))
+        for src, dst in ((near, far), (far, near)):
+            q: queue.Queue = queue.Queue()
+            threading.Thread(target=self._read, args=(src, q), daemon=True).start()
+            threading.Thread(target=self._write, args=(dst, q), daemon=True).start()
+
+    def _read(self, src: socket.socket, q: queue.Queue) -> None:
+        try:
+            while data := src.recv(65536):
+                q.put((time.monotonic() + self.one_way_s, data))
+        except OSError:
+            pass
+        q.put(None)
+
+    def _write(self, dst: socket.socket, q: queue.Queue) -> None:
+        try:
+            while (item := q.get()) is not None:
+                time.sleep(max(0.0, item[0] - time.monotonic()))
+                dst.sendall(item[1])
+            dst.shutdown(socket.SHUT_WR)
+        except OSError:
+            pass
+
+
+def run(
+    max_queue: int | str | None, rcvbuf: int, seconds: float, period_s: float, rtt_s: float = 0
+) -> dict:
     sensor = LiveSensor(None, "sim", LiveSettings(backend="torch", precision="fp32"))
     sensor.open()
     server = FoxgloveServer(sensor.geometry, port=0)
@@ -38,7 +83,8 @@ def run(max_queue: int | str | None, rcvbuf: int, seconds: float, period_s: floa
     sock = socket.socket()
     if rcvbuf:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-    sock.connect(("127.0.0.1", server.port))
+    port = DelayRelay(server.port, rtt_s / 2).port if rtt_s > 0 else server.port
+    sock.connect(("127.0.0.1", port))
     ages = []
     options = {"subprotocols": ["foxglove.sdk.v1"]}
     if max_queue != "default":
@@ -63,6 +109,7 @@ def run(max_queue: int | str | None, rcvbuf: int, seconds: float, period_s: floa
     server.finish()
     p50, p95, top = np.percentile(ages, [50, 95, 100])
     return {
+        "rtt_ms": round(rtt_s * 1000),
         "max_queue": max_queue,
         "so_rcvbuf": rcvbuf or "default",
         "messages": len(ages),
@@ -79,11 +126,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=6.0)
     parser.add_argument("--period", type=float, default=0.1, help="s between client reads")
+    parser.add_argument("--rtt-ms", type=float, default=0.0, help="network round trip, ms")
     args = parser.parse_args()
     print(cpu_summary())
     rows = []
     for max_queue, rcvbuf in ROWS:
-        rows.append(run(max_queue, rcvbuf, args.seconds, args.period))
+        rows.append(run(max_queue, rcvbuf, args.seconds, args.period, args.rtt_ms / 1000))
         print(rows[-1], flush=True)
     print(json.dumps(rows))
     return 0

@@ -1,13 +1,15 @@
 """A press held still for 60 s of simulated time: published force against the true force.
 
     PYTHONPATH=src .venv/bin/python benchmarks/steady_press.py [--hold-s 60]
-        [--checkpoint C] [--drift SPEC] [--json]
+        [--checkpoint C] [--backend auto] [--drift SPEC] [--json]
 
 Runs the default live pipeline (LiveSensor with default LiveSettings: the rest reference
 taken from still frames at start-up and refreshed while the pouch is unloaded and still)
 on the simulator's steady press (beadsight.sim.scripted.steady_press: 5 s at rest, then
 a 1.2 mm press at the centre held still), one reading per frame, played as fast as the
-sensor reads. The hold is judged from 1 s after the finger stops to 0.5 s before it
+sensor reads, with capture stamps one frame period apart (``FrameClock``), so that the
+rest references (once per second of capture time) come at the same frames on any machine
+and a run repeats exactly for one backend (``auto`` picks by speed). The hold is judged from 1 s after the finger stops to 0.5 s before it
 rises. Prints the true force, the published force at the start and end of the hold, the
 largest deviation from the true force in % (the issue's target: within 5 % throughout),
 the deviation over the last second, how many rest references were taken while the
@@ -20,7 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +49,7 @@ class SteadyPressResult:
     end_deviation_pct: float  # the same for the last held second
     rests_while_loaded: int  # rest references taken while the true force was > 0
     health: str  # the health state at the end of the hold
+    backend: str = ""  # the runtime that read the frames
 
     def summary(self) -> str:
         return (
@@ -55,6 +58,7 @@ class SteadyPressResult:
             f"{self.published_mean_n:.3f}, spread {self.spread_pct:.1f} %), max deviation "
             f"{self.max_deviation_pct:.1f} %, at the end {self.end_deviation_pct:.1f} %, "
             f"rest references taken while loaded {self.rests_while_loaded}, health {self.health}"
+            f", backend {self.backend}"
         )
 
 
@@ -71,6 +75,7 @@ def run_steady_press(
     drift: the simulator's drift text; settings: LiveSettings (default: the defaults)."""
     from beadsight.assets import shipped_model_path
     from beadsight.checkpoint import load_checkpoint
+    from beadsight.devices.clock import FrameClock
     from beadsight.devices.virtual.camera import SimCamera
     from beadsight.live.sensor import LiveSensor
     from beadsight.live.settings import LiveSettings
@@ -86,6 +91,7 @@ def run_steady_press(
         seed=seed,
         realtime=False,
         queue_frames=1,  # one frame at a time: a reading for every frame, as at 30 Hz
+        clock=FrameClock(config.fps),
     )
     sensor = LiveSensor(model, camera, settings or LiveSettings()).open()
     rows, rests = [], []
@@ -100,7 +106,8 @@ def run_steady_press(
             rows.append(
                 (sim_s, u.reading.timestamp_s, u.reading.force_n, u.reference_force_n, health)
             )
-    return judge(rows, rests)
+    backend = sensor.predictor.backend.describe() if sensor.predictor is not None else ""
+    return replace(judge(rows, rests), backend=backend)
 
 
 def judge(
@@ -144,18 +151,30 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hold-s", type=float, default=60.0, help="how long the press is held, s")
     p.add_argument("--checkpoint", default=None, help="checkpoint (default: the shipped sim model)")
+    p.add_argument("--backend", default="auto", help="the live backend (default: auto)")
     p.add_argument("--drift", default=None, help="the simulator's drift, e.g. light")
     p.add_argument("--seed", type=int, default=0, help="the simulator's seed")
     p.add_argument("--json", action="store_true", help="print only the JSON object")
     args = p.parse_args()
     start = time.perf_counter()
-    result = run_steady_press(args.checkpoint, args.hold_s, drift=args.drift, seed=args.seed)
+    from beadsight.live.settings import LiveSettings
+
+    settings = LiveSettings(backend=args.backend)
+    result = run_steady_press(
+        args.checkpoint, args.hold_s, drift=args.drift, settings=settings, seed=args.seed
+    )
     wall = time.perf_counter() - start
     if not args.json:
         print(cpu_summary())
         print(f"{result.summary()} ({wall:.1f} s wall)")
     checkpoint = str(args.checkpoint or "shipped sim model")
-    out = {"checkpoint": checkpoint, "hold_s": args.hold_s, "cpu": cpu_summary(), **asdict(result)}
+    out = {
+        "checkpoint": checkpoint,
+        "backend": args.backend,
+        "hold_s": args.hold_s,
+        "cpu": cpu_summary(),
+        **asdict(result),
+    }
     print(json.dumps({**out, "wall_s": round(wall, 1)}))
 
 

@@ -23,7 +23,7 @@ from beadsight.devices import (
     VideoFileNotFoundError,
 )
 from beadsight.devices.opencv import is_device_path
-from beadsight.devices.virtual import PlaybackCamera, SimCamera, VirtualCamera
+from beadsight.devices.virtual import FrameClock, PlaybackCamera, SimCamera, VirtualCamera
 
 WIDTH, HEIGHT = 64, 48
 LEVEL_STEP = 12  # grey level added per frame, so frame k can be recognised after MJPG
@@ -283,6 +283,23 @@ def test_played_frames_end_or_loop():
         frames = [cam.read(timeout_s=2.0) for _ in range(10)]
     assert [frame_number(f.image) for f in frames] == [k % 4 for k in range(10)]
     assert [f.index for f in frames] == list(range(10))
+
+
+def test_a_frame_clock_stamps_played_frames_one_period_apart_however_they_are_read():
+    """Played as fast as read, on a FrameClock: capture stamps are the camera's own time
+    (what rest references and health are timed by), not when the host got round to it."""
+    images = [np.full((HEIGHT, WIDTH, 3), 10 + LEVEL_STEP * k, np.uint8) for k in range(5)]
+    clock = FrameClock(30)
+    with PlaybackCamera(lambda: images, fps=30, realtime=False, queue_frames=1, clock=clock) as cam:
+        frames = []
+        for k in range(5):
+            frames.append(cam.read(timeout_s=2.0))
+            time.sleep(0.02 * k)  # uneven reads
+    assert [frame_number(f.image) for f in frames] == list(range(5))
+    assert np.allclose(np.diff([f.t_mono for f in frames]), 1 / 30, atol=1e-9)
+    assert np.allclose(np.diff([f.t_unix for f in frames]), 1 / 30, atol=1e-6)
+    with pytest.raises(ValueError, match="fps must be > 0"):
+        FrameClock(0)
 
 
 def test_unplugged_camera_reconnects_with_indices_counting_on():

@@ -150,8 +150,8 @@ class Frame:
     video files; "RGB" for the simulated sensor). ``index``: capture order since the camera
     object was made, counting on across reconnects and loops of a file; a jump between two
     frames you read means frames were skipped or dropped in between. ``t_mono`` /
-    ``t_unix``: host time the frame was captured (s); ``t_unix`` strictly increases from
-    frame to frame. ``reference_force_n``: the true force on the sensor when the camera
+    ``t_unix``: when the frame was captured (s), in host time (or on a virtual camera's
+    ``SteppedClock`` / ``FrameClock``); ``t_unix`` strictly increases from frame to frame. ``reference_force_n``: the true force on the sensor when the camera
     knows it (the simulator), else NaN. ``file_index``: the frame's row in the file the
     camera plays (a replayed dataset, :class:`~beadsight.devices.replay.DatasetCamera`),
     None for cameras that do not play one; unlike ``index`` it starts again on a loop.

@@ -7,7 +7,8 @@ delay) is in simulated seconds; the drivers on the other side only ever see host
 A ``SimClock()`` at the default scale is the host clock: the cameras pace frames on it.
 Capture timestamps are host time (:meth:`SimClock.stamp`), except on a
 :class:`SteppedClock`, whose time moves only when a device waits: timing logic (frame
-gaps, delivered rates) tested on it sees no host jitter.
+gaps, delivered rates) tested on it sees no host jitter; and on a :class:`FrameClock`,
+which stamps the frames of a camera played as fast as it is read one period apart.
 """
 
 from __future__ import annotations
@@ -77,4 +78,25 @@ class SteppedClock(SimClock):
 
     def stamp(self) -> tuple[float, float]:
         t = self.now()
+        return STEPPED_EPOCH_UNIX + t, t
+
+
+class FrameClock(SimClock):
+    """Capture stamps exactly one frame period apart, whatever the host does, for a camera
+    played as fast as it is read (``realtime=False``): the logic downstream that is timed
+    by capture stamps (rest references once per second, health, gap detection) then sees
+    the camera's own time, and a run repeats on any machine at any speed."""
+
+    def __init__(self, fps: float):
+        if not fps > 0:
+            raise ValueError(f"fps must be > 0, got {fps}")
+        super().__init__(1.0)
+        self.period_s = 1.0 / float(fps)
+        self._frames = 0
+        self._lock = threading.Lock()
+
+    def stamp(self) -> tuple[float, float]:
+        with self._lock:
+            t = self._frames * self.period_s
+            self._frames += 1
         return STEPPED_EPOCH_UNIX + t, t

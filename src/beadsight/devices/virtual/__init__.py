@@ -7,7 +7,9 @@
 * :class:`VirtualRig` - printer, scale and camera driven by one simulated pouch
   (``beadsight.sim``).
 * :class:`SimClock` - simulated time, optionally faster than real time;
-  :class:`SteppedClock` - simulated time that moves only when a device waits.
+  :class:`SteppedClock` - simulated time that moves only when a device waits;
+  :class:`FrameClock` - capture stamps one frame period apart (a camera read as fast as it
+  plays).
 
 The printer, scale and rig are Linux/macOS only (they use ``pty``); the cameras run
 anywhere. Names are imported on first use, so importing a camera does not need ``pty``.
@@ -23,6 +25,7 @@ _WHERE = {
     "VirtualCamera": "beadsight.devices.virtual.camera",
     "SimClock": "beadsight.devices.clock",
     "SteppedClock": "beadsight.devices.clock",
+    "FrameClock": "beadsight.devices.clock",
     "VirtualPrinter": "beadsight.devices.virtual.printer",
     "VirtualRig": "beadsight.devices.virtual.rig",
     "VirtualScale": "beadsight.devices.virtual.scale",
