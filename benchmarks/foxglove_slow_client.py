@@ -50,6 +50,8 @@ class DelayRelay:
     def _accept(self) -> None:
         near, _ = self.listener.accept()
         far = socket.create_connection(("127.0.0.1", self.target))
+        for end in (near, far):  # as the two ends do: no Nagle delay on small frames
+            end.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         for src, dst in ((near, far), (far, near)):
             q: queue.Queue = queue.Queue()
             threading.Thread(target=self._read, args=(src, q), daemon=True).start()

@@ -14,12 +14,11 @@ encodes (``foxglove.messages``) and gives the schemas; this module serves them:
 * **Pacing: credit by the client's pongs.** Each message is followed by a WebSocket ping,
   whose pong says the client has read it off its socket. A client may have as many
   messages awaiting their pong as it reads in :data:`CREDIT_S` at the rate its pongs
-  came over the last second (at least one): a slow client one, a fast one (the Foxglove
-  app) enough that the round trip does not slow it. Readings that arrive meanwhile
-  replace the one waiting (counted in ``skipped``), and a reading older than
-  ``max_age_s`` when its turn comes is skipped too. So nothing queues in the server or
-  the kernel for a slow client. A client silent for :data:`PONG_TIMEOUT_S` is
-  disconnected.
+  came over the last second (at least one): a slow client one, a fast one more
+  (docs/live.md measures it by round trip). Readings that arrive meanwhile replace the
+  one waiting (counted in ``skipped``), and a reading older than ``max_age_s`` when its
+  turn comes is skipped too. So nothing queues in the server or the kernel for a slow
+  client. A client silent for :data:`PONG_TIMEOUT_S` is disconnected.
 """
 
 from __future__ import annotations
