@@ -299,7 +299,8 @@ class FoxgloveWebSocket:
         frames awaiting their pong as it answers in :data:`CREDIT_S`, at its rate over the
         last :data:`RATE_S` (at least one, at most :data:`MAX_IN_FLIGHT`). The rate, not
         how fast one pong came: a client library answers the pings of every frame it takes
-        off the socket at once, however slowly its application reads them."""
+        off the socket at once, however slowly its application reads them. With nothing
+        to send it waits for a reading or the oldest pong, whichever comes first."""
         in_flight: deque[Any] = deque()  # pong waiters, oldest first
         answered: deque[float] = deque()  # when each pong of the last RATE_S came
 
@@ -317,12 +318,16 @@ class FoxgloveWebSocket:
                 while len(in_flight) >= window():
                     await pong()
                 frame = client.next_frame(self.max_age_s)
-                if frame is None:
-                    if in_flight:  # nothing to send: take the pongs due meanwhile
-                        await pong()
-                        continue
+                if frame is None:  # wait for a reading, or for the oldest pong
                     client.wake.clear()
-                    await client.wake.wait()
+                    woken = asyncio.ensure_future(client.wake.wait())
+                    waits = (woken, in_flight[0]) if in_flight else (woken,)
+                    try:
+                        await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+                    finally:
+                        woken.cancel()
+                    if in_flight and in_flight[0].done():
+                        await pong()
                     continue
                 await asyncio.wait_for(client.ws.send(frame), PONG_TIMEOUT_S)
                 in_flight.append(await client.ws.ping())
