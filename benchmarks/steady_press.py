@@ -8,13 +8,14 @@ taken from still frames at start-up and refreshed while the pouch is unloaded an
 on the simulator's steady press (beadsight.sim.scripted.steady_press: 5 s at rest, then
 a 1.2 mm press at the centre held still), one reading per frame, played as fast as the
 sensor reads, with capture stamps one frame period apart (``FrameClock``), so that the
-rest references (once per second of capture time) come at the same frames on any machine
-and a run repeats exactly for one backend (``auto`` picks by speed). The hold is judged from 1 s after the finger stops to 0.5 s before it
-rises. Prints the true force, the published force at the start and end of the hold, the
-largest deviation from the true force in % (the issue's target: within 5 % throughout),
-the deviation over the last second, how many rest references were taken while the
-finger was down (must be 0) and the health state at the end; the last line is a JSON
-object (--json: the only line).
+rest references (once per second of capture time) come at the same frames on any
+machine and a run repeats exactly for one backend (``auto`` picks by speed). The hold
+is judged from 1 s after the finger stops to 0.5 s before it rises. Prints the true
+force, the published force at the start and end of the hold, the largest deviation from
+the true force in % (the issue's target: within 5 % throughout), the deviation over the
+last second, how many rest references were taken while the finger was down (must be 0),
+the health state at the end and the backend; the last line is a JSON object (--json:
+the only line).
 """
 
 from __future__ import annotations
