@@ -60,7 +60,9 @@ def test_a_slow_publisher_gets_no_reading_older_than_max_age_and_skips_are_count
         longest_push = max(longest_push, time.monotonic() - start)
         time.sleep(PUSH_PERIOD_S)
     pub.finish()
-    assert longest_push < 0.05  # sensing never waits for the publisher
+    # sensing never waits for the publisher: a push that did would take a publish (0.3 s);
+    # a loaded machine's scheduler alone once held a push 0.1 s (a fresh-clone CI run)
+    assert longest_push < PUBLISH_S / 2
     # the queue of 4 alone would hand on readings 4 x 0.3 s = 1.2 s old
     assert max(pub.ages) <= MAX_AGE_S
     assert pub.published == len(pub.seen) and pub.published + pub.skipped == pushed
