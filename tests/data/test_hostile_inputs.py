@@ -9,7 +9,8 @@ import pytest
 from helpers.recording import Timeline, write_beadsight_raw
 
 from beadsight.cli import main
-from beadsight.data.process.run import ProcessConfig, process_recording
+from beadsight.data.process.config import ProcessConfig
+from beadsight.data.process.run import process_recording
 from beadsight.data.recording import RecordingError
 from beadsight.data.recording.text import MAX_LOG_BYTES, MAX_RECORD_CHARS
 
