@@ -169,13 +169,7 @@ def main() -> None:
         print(cpu_summary())
         print(f"{result.summary()} ({wall:.1f} s wall)")
     checkpoint = str(args.checkpoint or "shipped sim model")
-    out = {
-        "checkpoint": checkpoint,
-        "backend": args.backend,
-        "hold_s": args.hold_s,
-        "cpu": cpu_summary(),
-        **asdict(result),
-    }
+    out = {"checkpoint": checkpoint, "hold_s": args.hold_s, "cpu": cpu_summary(), **asdict(result)}
     print(json.dumps({**out, "wall_s": round(wall, 1)}))
 
 
