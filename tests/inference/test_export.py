@@ -229,3 +229,15 @@ def test_cli_bench_live_json(checkpoint, tmp_path, capsys):
     assert result["throughput"]["readings"] == 60 - 15 + 1
     sustained = result["sustained"]
     assert sustained["offered_hz"] == 30.0 and sustained["readings"] >= 1
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--reference", "r.pt"], "--reference goes with --tiers"),
+        (["--tiers", "--rate", "0"], "--rate must be > 0 Hz, got 0"),
+    ],
+)
+def test_cli_bench_live_refuses_options_it_would_ignore(extra, message, capsys):
+    assert main(["bench", "live", *extra]) == 1  # a user error
+    assert message in capsys.readouterr().err

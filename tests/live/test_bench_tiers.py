@@ -21,6 +21,10 @@ def test_tiers_report_rate_latency_speedup_and_metric_deltas(tmp_path):
     assert rows[1]["backend"].endswith("/fp32") and rows[2]["backend"] == "int8/int8"
     for row in rows:
         assert row["readings_per_s"] > 0 and 0 < row["p50_ms"] <= row["p99_ms"]
+        cam = row["camera"]  # 20 frames offered at 30 Hz on the wall clock
+        assert cam["offered_hz"] == 30 and 0 < cam["readings_per_s"] <= 31
+        assert cam["age_p99_ms"] > 0 and cam["skipped_frames"] >= 0
+        assert cam["held"] == (cam["skipped_frames"] == 0 and cam["age_p99_ms"] <= 1e3 / 30)
         assert set(row["metric_deltas_pct"]) >= {"mae_kpa", "force_error_pct", "iou"}
     assert (
         rows[0]["metric_parity_ok"] and max(map(abs, rows[0]["metric_deltas_pct"].values())) < 1e-3
@@ -31,3 +35,4 @@ def test_tiers_report_rate_latency_speedup_and_metric_deltas(tmp_path):
     assert max(map(abs, rows[2]["metric_deltas_pct"].values())) > 0  # it is not fp32
     text = tiers_summary(result)
     assert "int8/int8" in text and "metric gate passes" in text and result["cpu"] in text
+    assert "camera 30 Hz" in text and "age p99" in text

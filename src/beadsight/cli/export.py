@@ -65,8 +65,17 @@ def _bench_arguments(bench: argparse.ArgumentParser) -> None:
         "--tiers",
         action="store_true",
         help="instead: eager torch fp32, the best fp32 runtime and int8, one after another, "
-        "for the reference size (random weights) and the shipped model (or --checkpoint): "
-        "readings/s, p50/p99, speedup and the paper's metrics vs fp32 torch, with the CPU",
+        "for the reference size (random weights, or --reference) and the shipped model (or "
+        "--checkpoint): readings/s, p50/p99, speedup, whether a 30 Hz camera is held (every "
+        "frame read, p99 camera-to-reading age within a frame period) and the paper's "
+        "metrics vs fp32 torch, with the CPU",
+    )
+    live.add_argument(
+        "--reference",
+        default=None,
+        metavar="CHECKPOINT",
+        help="with --tiers: a trained reference-size checkpoint in place of the random one "
+        "(random weights cannot vouch for int8 on the paper's metrics)",
     )
     live.add_argument("--json", action="store_true", help="print one JSON object")
     live.set_defaults(func=_bench_live)
@@ -145,6 +154,10 @@ def _bench_live(args: argparse.Namespace) -> int:
         return _bench_source(args)
     if args.tiers:
         return _bench_tiers(args)
+    if args.reference is not None:
+        from beadsight.errors import ConfigError
+
+        raise ConfigError("bench live: --reference goes with --tiers")
     model = load_checkpoint(args.checkpoint) if args.checkpoint else None
     options = given(frames=args.frames, rate_hz=args.rate, seed=args.seed)
     if options.get("rate_hz") == 0:
@@ -164,13 +177,28 @@ def _bench_live(args: argparse.Namespace) -> int:
 def _bench_tiers(args: argparse.Namespace) -> int:
     from beadsight.assets import shipped_model_path
     from beadsight.checkpoint import load_checkpoint
-    from beadsight.live.bench import TIER_FRAMES, bench_tiers, random_model, tiers_summary
+    from beadsight.live.bench import (
+        DEFAULT_RATE_HZ,
+        TIER_FRAMES,
+        bench_tiers,
+        random_model,
+        tiers_summary,
+    )
 
+    if args.rate is not None and not args.rate > 0:
+        from beadsight.errors import ConfigError
+
+        raise ConfigError(f"bench live --tiers: --rate must be > 0 Hz, got {args.rate:g}")
     shipped = load_checkpoint(args.checkpoint or shipped_model_path())
-    models = {"reference": random_model(seed=args.seed or 0), "shipped": shipped}
+    reference = load_checkpoint(args.reference) if args.reference else random_model(args.seed or 0)
+    models = {"reference": reference, "shipped": shipped}
     options = _backend_options(args)
     result = bench_tiers(
-        models, args.frames or TIER_FRAMES, options["cache_dir"], options["threads"]
+        models,
+        args.frames or TIER_FRAMES,
+        options["cache_dir"],
+        options["threads"],
+        rate_hz=args.rate or DEFAULT_RATE_HZ,
     )
     print(json.dumps(result) if args.json else tiers_summary(result))
     return 0
