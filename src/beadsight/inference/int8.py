@@ -14,7 +14,9 @@ ranges averaged over the calibration windows, every convolution in int8:
 pressure MAE (+99 %) and the force error (+118 %). Asymmetric activations (the
 ``mixed`` preset) with min/max ranges brought that to +1.5 % / +3.9 %, and keeping the
 full-resolution blocks (the first and last conv blocks and the output conv, about 40 %
-of the convolution work at the reference size) in fp32 to within 2 % on every metric.
+of the convolution work at the reference size) in fp32 to within 2 % on every metric on
+the CPU it was chosen on. That is the gate's edge: the CoP error moves by -1.66 % without
+VNNI, +1.97 % with it and +2.10 % with it on one thread (docs/live.md).
 
 Whether the result may be used is decided on the paper's metrics, not pixel by pixel:
 :func:`beadsight.inference.metric_parity.metric_parity` (the ``int8`` runtime and auto
