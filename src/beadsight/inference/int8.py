@@ -46,6 +46,7 @@ from beadsight.inference.export_format import model_fingerprint
 from beadsight.inference.machine import import_openvino, machine_key, openvino_signal_stack_kept
 from beadsight.inference.metric_parity import (
     GATE_KEY,
+    METRIC_TOLERANCE,
     MetricParity,
     metric_parity,
     require_meaningful,
@@ -230,7 +231,7 @@ class Int8Backend(OpenVinoBackend):
         self.cache_dir = Path(cache_dir) if cache_dir else None
 
 
-def _read_parity(path: Path | None) -> MetricParity | None:
+def _read_parity(path: Path | None, tolerance: float) -> MetricParity | None:
     try:
         data = json.loads(path.read_text())
         return MetricParity(
@@ -239,15 +240,20 @@ def _read_parity(path: Path | None) -> MetricParity | None:
             data["candidate"],
             int(data["windows"]),
             data["zero"],
+            tolerance,  # judged by today's bound, whatever it was when kept
         )
     except (AttributeError, OSError, ValueError, KeyError, TypeError):
         return None
 
 
 def gated_int8(
-    model: PressureModel, cache_dir: Path | None = None, threads: int | None = None
+    model: PressureModel,
+    cache_dir: Path | None = None,
+    threads: int | None = None,
+    tolerance: float = METRIC_TOLERANCE,
 ) -> Int8Backend:
-    """The int8 runtime of ``model`` if it passes the metric gate, else
+    """The int8 runtime of ``model`` if it passes the metric gate (every paper metric
+    within ``tolerance`` relative to fp32 torch), else
     :class:`~beadsight.inference.metric_parity.MetricParityError` (the backend closed).
 
     The verdict is kept in ``cache_dir/int8/<key>-parity-<gate>.json`` (the held-out
@@ -256,13 +262,13 @@ def gated_int8(
     backend = None
     key = f"{_model_key(model, None, ACCURATE)}-parity-{GATE_KEY}.json"
     path = Path(cache_dir) / "int8" / key if cache_dir else None
-    parity = _read_parity(path)
+    parity = _read_parity(path, tolerance)
     if parity is None:
         presses = simulated_presses(model)
         reference = model.predict(presses.inputs, batch_size=1)
         require_meaningful(model, presses, reference)
         backend = Int8Backend(model, cache_dir=cache_dir, threads=threads)
-        parity = metric_parity(backend, model, presses, reference=reference)
+        parity = metric_parity(backend, model, presses, reference=reference, tolerance=tolerance)
         if path is not None:
             atomic_write_json(path, parity.to_dict())
     backend = backend or Int8Backend(model, cache_dir=cache_dir, threads=threads)
