@@ -2,9 +2,9 @@
 
 Measured here, not assumed: NNCF's default post-training quantization
 (:data:`NNCF_DEFAULT`) of the shipped simulator model (64 px, width 8, rest-referenced)
-roughly doubles its pressure MAE on held-out simulated presses, so the gate must refuse
-it, by name, with the metric; the default recipe (:data:`ACCURATE`) keeps every metric
-within 2 % and is accepted.
+raises its pressure MAE by 18 % and its force error by 31 % on held-out simulated
+presses, so the gate must refuse it, by name, with the metric; the default recipe
+(:data:`ACCURATE`) keeps every metric within a few % and is accepted.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import pytest
 
 from beadsight.assets import shipped_model_path
 from beadsight.checkpoint import load_checkpoint
+from beadsight.data.rest import REST_FRAMES, average_rest, rest_ends
 from beadsight.inference.int8 import (
     NNCF_DEFAULT,
     Int8Backend,
@@ -22,10 +23,13 @@ from beadsight.inference.int8 import (
 )
 from beadsight.inference.metric_parity import (
     HELDOUT_PRESSES,
+    HELDOUT_SEED,
     METRIC_TOLERANCE,
     WINDOWS_PER_PRESS,
     MetricParity,
     MetricParityError,
+    _simulated_session,
+    fp32_maps,
     metric_parity,
     require_metric_parity,
     simulated_presses,
@@ -47,24 +51,46 @@ def heldout(sim_model):
 def reference(sim_model, heldout):
     """fp32 torch's maps of the held-out presses, as :func:`metric_parity` computes them
     (read-only: the tests that judge a runtime against them share them)."""
-    maps = sim_model.predict(heldout.inputs, batch_size=1)
+    maps = fp32_maps(sim_model, heldout)
     maps.flags.writeable = False
     return maps
 
 
+@pytest.fixture(scope="module")
+def int8_backend(sim_model, tmp_path_factory):
+    """The default recipe's int8 runtime of the shipped model (not gated)."""
+    backend = Int8Backend(sim_model, cache_dir=tmp_path_factory.mktemp("int8-cache"))
+    yield backend
+    backend.close()
+
+
 def test_heldout_presses_are_presses(sim_model, heldout):
-    assert heldout.inputs.shape[1:] == (sim_model.inputs, 64, 64, 3)
+    assert heldout.inputs(0, 2).shape == (2, sim_model.inputs, 64, 64, 3)
     # evenly over each press: approach, contact and release, as evaluate weighs them
     assert 0.2 < heldout.contact.mean() < 0.8 and (heldout.force_n[heldout.contact] > 2).sum() >= 20
-    assert len(heldout.inputs) == HELDOUT_PRESSES * WINDOWS_PER_PRESS
+    assert len(heldout) == HELDOUT_PRESSES * WINDOWS_PER_PRESS
+    assert np.concatenate(list(heldout.batches(100))).shape[0] == len(heldout)
     calib = calibration_windows(sim_model)
-    assert not np.array_equal(calib[: len(heldout.inputs)], heldout.inputs)  # another seed
+    assert not np.array_equal(calib, heldout.inputs(0, len(calib)))  # another seed
+
+
+def test_heldout_windows_see_the_pouch_as_it_last_rested(sim_model, heldout):
+    # the beads re-settle after each press: every window's rest image is the newest
+    # unloaded, settled run before it (as `beadsight evaluate` picks it), not the
+    # session's first frames
+    session = _simulated_session(sim_model.image_size, HELDOUT_SEED, HELDOUT_PRESSES)
+    ends = rest_ends(session.force_n, np.ones(len(session.force_n), bool))[heldout.ends]
+    first = average_rest(session.frames[:REST_FRAMES])
+    for k in (0, len(heldout) // 2, len(heldout) - 1):
+        expected = average_rest(session.frames[ends[k] - REST_FRAMES + 1 : ends[k] + 1])
+        np.testing.assert_array_equal(heldout.inputs(k, k + 1)[0, 0], expected)
+    assert not np.array_equal(heldout.inputs(len(heldout) - 1, len(heldout))[0, 0], first)
 
 
 def test_an_fp32_runtime_passes_the_metric_gate(sim_model, heldout, reference):
     backend = build_backend(sim_model, "openvino", "fp32", cache_dir=None)
     parity = metric_parity(backend, sim_model, heldout, reference=reference)
-    assert parity.ok and parity.meaningful and parity.windows == len(heldout.inputs)
+    assert parity.ok and parity.meaningful and parity.windows == len(heldout)
     assert max(abs(d) for d in parity.deltas.values()) < 1e-3
 
 
@@ -93,7 +119,7 @@ def test_int8_that_moves_the_metrics_is_refused(sim_model, heldout, reference, t
     coarse = Int8Backend(sim_model, cache_dir=tmp_path, recipe=NNCF_DEFAULT)
     parity = metric_parity(coarse, sim_model, heldout, reference=reference)
     assert parity.meaningful and not parity.ok
-    assert parity.deltas["mae_kpa"] > 0.2  # measured: about +99 %
+    assert parity.deltas["mae_kpa"] > 0.1  # measured: +18 % (force error +31 %)
     with pytest.raises(MetricParityError) as err:
         require_metric_parity(coarse, sim_model, parity)
     message = str(err.value)
@@ -102,22 +128,37 @@ def test_int8_that_moves_the_metrics_is_refused(sim_model, heldout, reference, t
     assert coarse.request is None  # closed
 
 
+def test_int8_does_not_cut_the_pressure_map(sim_model, heldout, reference, int8_backend):
+    # Harder presses than the calibration's: a quantizer on the output cut every map at the
+    # calibration presses' peak (140 kPa for this model against 202 kPa here) in steps of
+    # 1/255 of it, and moved the force error by +31 % on these presses.
+    calibration_peak = sim_model.predict(calibration_windows(sim_model), batch_size=1).max()
+    peaks = reference.max(axis=(1, 2))
+    hard = np.flatnonzero(peaks > 1.2 * calibration_peak)
+    assert hard.size >= 5  # the held-out presses go beyond the calibration's range
+    got = int8_backend.run_batch(heldout.inputs(int(hard[0]), int(hard[-1]) + 1))
+    got_peaks = got.max(axis=(1, 2))[hard - hard[0]]
+    np.testing.assert_allclose(got_peaks, peaks[hard], rtol=0.05)
+    assert np.unique(got[got > 0]).size > 1000  # a continuous map, not 255 levels
+
+
 def test_int8_that_keeps_the_metrics_is_accepted_and_cached(sim_model, heldout, tmp_path):
-    # The default recipe keeps the shipped model's metrics within 2 % on some CPUs and not
-    # on others (CoP +1.97 % with AVX-512 VNNI and 2 threads, +2.10 % with 1 thread, -1.66 %
-    # without VNNI: docs/live.md), so the accepting path is tested at a 5 % bound.
-    bound = 0.05
+    # The default recipe keeps the shipped model's metrics within 2 % on some CPUs and
+    # thread counts and not on others (its CoP error moves by +1.7 % with AVX-512 VNNI and
+    # 2 threads, +4.9 % with 1 thread, +4.1 / +3.1 % capped at AVX2: docs/live.md), so the
+    # accepting path is tested at a 10 % bound.
+    bound = 0.10
     backend = gated_int8(sim_model, cache_dir=tmp_path, tolerance=bound)  # gate passed
     try:
         assert backend.describe() == "int8/int8" and backend.parity.ok
         assert all(abs(d) <= bound for d in backend.parity.deltas.values())
         assert len(list((tmp_path / "int8").glob("*.xml"))) == 1  # beside the other caches
         assert len(list((tmp_path / "int8").glob("*-parity-*.json"))) == 1
-        out = backend.run_batch(heldout.inputs[:3])
+        out = backend.run_batch(heldout.inputs(0, 3))
         assert out.shape == (3, 64, 64) and out.dtype == np.float32 and np.isfinite(out).all()
         again = Int8Backend(sim_model, cache_dir=tmp_path)
         assert again.quantized_path == backend.quantized_path
-        np.testing.assert_array_equal(again.run_batch(heldout.inputs[:3]), out)
+        np.testing.assert_array_equal(again.run_batch(heldout.inputs(0, 3)), out)
         cached = gated_int8(sim_model, cache_dir=tmp_path, tolerance=bound)  # the verdict kept
         assert cached.parity.deltas == backend.parity.deltas
         cached.close()

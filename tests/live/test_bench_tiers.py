@@ -33,11 +33,11 @@ def test_tiers_report_rate_latency_speedup_and_metric_deltas(tmp_path):
         rows[0]["metric_parity_ok"] and max(map(abs, rows[0]["metric_deltas_pct"].values())) < 1e-3
     )
     assert rows[1]["metric_parity_ok"]
-    # the gate's verdict is its 2 % bound; the default int8 recipe sits at that edge on this
-    # model (CoP +1.97 % on an AVX-512 VNNI CPU with 2 threads, +2.10 % with 1, -1.66 %
-    # without VNNI), so either verdict can be right here
+    # the gate's verdict is its 2 % bound; the default int8 recipe sits about that edge on
+    # this model (CoP +1.7 to +4.9 % by CPU and threads: test_int8.py), so either verdict
+    # can be right here
     worst = max(map(abs, rows[2]["metric_deltas_pct"].values()))
-    assert rows[2]["metric_parity_ok"] == (worst <= 2) and worst < 5
+    assert rows[2]["metric_parity_ok"] == (worst <= 2) and worst < 10
     assert max(map(abs, rows[2]["metric_deltas_pct"].values())) > 0  # it is not fp32
     text = tiers_summary(result)
     assert "int8/int8" in text and "metric gate passes" in text and result["cpu"] in text

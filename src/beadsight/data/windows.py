@@ -211,7 +211,8 @@ def stream_windows(
     """Model inputs ending at ``ends`` of a stream held in memory.
 
     frames: (N, S, S, 3) uint8 RGB, in order; ends: (B,) indices, each >= span - 1;
-    rest: an (S, S, 3) uint8 RGB rest image put in front of every window.
+    rest: an (S, S, 3) uint8 RGB rest image put in front of every window, or (B, S, S, 3):
+    one per window.
     returns: (B, inputs, S, S, 3) uint8 RGB (a copy), windows oldest first.
     """
     ends = np.asarray(ends, dtype=np.int64)
@@ -224,4 +225,6 @@ def stream_windows(
     windows = np.moveaxis(view[ends - (span - 1)], -1, 1)  # (B, span, S, S, 3)
     if rest is None:
         return np.ascontiguousarray(windows)
-    return np.concatenate([np.broadcast_to(rest, (len(ends), 1, *rest.shape)), windows], axis=1)
+    rest = np.asarray(rest)
+    rest = rest[:, None] if rest.ndim == 4 else rest[None, None]
+    return np.concatenate([np.broadcast_to(rest, (len(ends), 1, *rest.shape[2:])), windows], axis=1)

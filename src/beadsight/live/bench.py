@@ -444,13 +444,13 @@ def bench_tiers(
     30 Hz camera is held (:func:`bench_tier`), and the paper's metrics on held-out
     simulated presses with their change from fp32 torch."""
     from beadsight.inference.machine import cpu_flags, cpu_name, cpu_summary
-    from beadsight.inference.metric_parity import simulated_presses
+    from beadsight.inference.metric_parity import fp32_maps, simulated_presses
 
     out: dict[str, Any] = {"cpu": cpu_summary(), "cpu_model": cpu_name(), "flags": cpu_flags()}
     for name, model in models.items():
         source, _ = simulated_frames(model.image_size, min(frames, DEFAULT_SOURCE_FRAMES), seed)
         presses = simulated_presses(model)
-        reference = model.predict(presses.inputs, batch_size=1)
+        reference = fp32_maps(model, presses)
         rows = []
         for tier, build in _tier_backends(model, cache_dir, threads):
             backend = build()
