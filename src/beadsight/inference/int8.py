@@ -48,7 +48,9 @@ from beadsight.inference.export_format import model_fingerprint
 from beadsight.inference.machine import import_openvino, machine_key, openvino_signal_stack_kept
 from beadsight.inference.metric_parity import (
     GATE_KEY,
+    HELDOUT_PRESSES,
     METRIC_TOLERANCE,
+    WINDOWS_PER_PRESS,
     MetricParity,
     fp32_maps,
     metric_parity,
@@ -273,6 +275,13 @@ def gated_int8(
     path = Path(cache_dir) / "int8" / key if cache_dir else None
     parity = _read_parity(path, tolerance)
     if parity is None:
+        log.info(
+            "int8: judging it on the paper's metrics against fp32 torch on %d windows of %d "
+            "held-out simulated presses, once for this checkpoint and machine%s",
+            HELDOUT_PRESSES * WINDOWS_PER_PRESS,
+            HELDOUT_PRESSES,
+            f" (the verdict is kept in {path})" if path else "",
+        )
         presses = simulated_presses(model)
         reference = fp32_maps(model, presses)
         require_meaningful(model, presses, reference)
