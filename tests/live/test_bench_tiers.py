@@ -38,7 +38,7 @@ def test_tiers_report_rate_latency_speedup_and_metric_deltas(tmp_path):
     # can be right here
     worst = max(map(abs, rows[2]["metric_deltas_pct"].values()))
     assert rows[2]["metric_parity_ok"] == (worst <= 2) and worst < 10
-    assert max(map(abs, rows[2]["metric_deltas_pct"].values())) > 0  # it is not fp32
+    assert worst > 0  # it is not fp32
     text = tiers_summary(result)
     assert "int8/int8" in text and "metric gate passes" in text and result["cpu"] in text
     assert "camera 30 Hz" in text and "age p99" in text

@@ -141,12 +141,11 @@ def _export(args: argparse.Namespace) -> int:
 def _bench_live(args: argparse.Namespace) -> int:
     from beadsight.checkpoint import load_checkpoint
     from beadsight.cli.options import given
+    from beadsight.errors import ConfigError
     from beadsight.live.bench import bench_live
 
     if args.source is not None:
         if args.frames is not None or args.rate is not None:
-            from beadsight.errors import ConfigError
-
             raise ConfigError(
                 "bench live: --frames and --rate time the predictor alone; "
                 "with --source, give --duration (and --fps) instead"
@@ -155,8 +154,6 @@ def _bench_live(args: argparse.Namespace) -> int:
     if args.tiers:
         return _bench_tiers(args)
     if args.reference is not None:
-        from beadsight.errors import ConfigError
-
         raise ConfigError("bench live: --reference goes with --tiers")
     model = load_checkpoint(args.checkpoint) if args.checkpoint else None
     options = given(frames=args.frames, rate_hz=args.rate, seed=args.seed)

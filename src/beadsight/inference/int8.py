@@ -107,9 +107,7 @@ class QuantizationRecipe:
         patterns = []
         if self.fp32_blocks:  # names of torch's ONNX export: /net/C1/layer/layer.0/Conv
             patterns.append(f".*/net/({'|'.join(self.fp32_blocks)})/.*")
-        options["ignored_scope"] = nncf.IgnoredScope(
-            patterns=patterns, types=["Gather"], validate=False
-        )
+        options["ignored_scope"] = nncf.IgnoredScope(patterns=patterns, types=["Gather"])
         return options
 
 
