@@ -1,6 +1,6 @@
 """The figures of benchmarks/live_response.py and benchmarks/steady_press.py, on made-up
 readings whose answers are known; benchmarks/live_offline.py end to end on a tiny
-simulated dataset."""
+simulated dataset; benchmarks/live_rest.py on the simulator's first press."""
 
 from __future__ import annotations
 
@@ -145,3 +145,25 @@ def test_train_speed_compares_variants_of_the_real_step(monkeypatch):
         assert r["cpu_ms_per_sample"] > 0
     with pytest.raises(SystemExit, match="unknown lever"):
         speed.Variant.parse("now+nope")
+
+
+def test_live_rest_reads_one_session_live_and_with_the_offline_rest(rest_model, tmp_path, capsys):
+    live_rest = benchmark("live_rest")
+    checkpoint = rest_model.save(tmp_path / "rest.pt")
+    argv = ["--checkpoint", str(checkpoint), "--seeds", "0", "--readings", "180"]
+    live_rest.main([*argv, "--backend", "torch", "--json"])  # the session's first press
+    figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    rows = figures["seeds"]["0"]
+    assert set(rows) == {"live", "offline_rest"}
+    assert rows["live"]["presses"] == rows["offline_rest"]["presses"] == 1  # the same frames
+    assert figures["mean"]["live"]["presses"] == 1
+
+
+def test_live_rest_refuses_a_model_without_a_rest_input(tmp_path):
+    from helpers.live import tiny_model
+
+    from beadsight.errors import ConfigError
+
+    checkpoint = tiny_model().save(tmp_path / "plain.pt")
+    with pytest.raises(ConfigError, match="plain.pt: not a rest-referenced model"):
+        benchmark("live_rest").compare(checkpoint, seeds=(0,), readings=10, backend="torch")
