@@ -26,10 +26,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import importlib.util
 import itertools
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -56,13 +56,13 @@ FIGURES = (
 )
 
 
+@functools.cache
 def _response():
     """benchmarks/live_response.py's ``response`` (a sibling script, not a package)."""
     spec = importlib.util.spec_from_file_location(
         "live_response", Path(__file__).with_name("live_response.py")
     )
     module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("live_response", module)
     spec.loader.exec_module(module)
     return module.response
 
@@ -131,11 +131,10 @@ def compare(checkpoint=None, seeds=(0, 1, 2, 3), readings: int = 3600, backend="
     from beadsight.checkpoint import load_checkpoint
     from beadsight.errors import ConfigError
 
-    model = load_checkpoint(checkpoint if checkpoint is not None else shipped_model_path())
+    path = checkpoint if checkpoint is not None else shipped_model_path()
+    model = load_checkpoint(path)
     if not model.rest:
-        raise ConfigError(
-            f"{checkpoint}: not a rest-referenced model (it has no rest image to compare)"
-        )
+        raise ConfigError(f"{path}: not a rest-referenced model (it has no rest image to compare)")
     per_seed = {}
     for seed in seeds:
         live = read_live(model, seed, readings, backend)
