@@ -165,8 +165,13 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if args.readings < 1:
         p.error(f"--readings must be >= 1, got {args.readings}")
+    from beadsight.errors import BeadSightError
+
     start = time.perf_counter()
-    result = compare(args.checkpoint, args.seeds, args.readings, args.backend)
+    try:
+        result = compare(args.checkpoint, args.seeds, args.readings, args.backend)
+    except BeadSightError as error:  # a missing or foreign checkpoint, an unknown backend
+        p.error(str(error))
     wall = time.perf_counter() - start
     if not args.json:
         print(cpu_summary())

@@ -159,11 +159,15 @@ def test_live_rest_reads_one_session_live_and_with_the_offline_rest(rest_model, 
     assert figures["mean"]["live"]["presses"] == 1
 
 
-def test_live_rest_refuses_a_model_without_a_rest_input(tmp_path):
+def test_live_rest_refuses_a_model_without_a_rest_input(tmp_path, capsys):
     from helpers.live import tiny_model
 
     from beadsight.errors import ConfigError
 
     checkpoint = tiny_model().save(tmp_path / "plain.pt")
+    live_rest = benchmark("live_rest")
     with pytest.raises(ConfigError, match="plain.pt: not a rest-referenced model"):
-        benchmark("live_rest").compare(checkpoint, seeds=(0,), readings=10, backend="torch")
+        live_rest.compare(checkpoint, seeds=(0,), readings=10, backend="torch")
+    with pytest.raises(SystemExit):  # the command line: a usage error, not a traceback
+        live_rest.main(["--checkpoint", str(tmp_path / "missing.pt")])
+    assert "missing.pt: checkpoint file not found" in capsys.readouterr().err
