@@ -1,12 +1,13 @@
 """A press held still for 60 s of simulated time: published force against the true force.
 
     PYTHONPATH=src .venv/bin/python benchmarks/steady_press.py [--hold-s 60]
-        [--checkpoint C] [--backend auto] [--drift SPEC] [--json]
+        [--ramp-feed F] [--checkpoint C] [--backend auto] [--drift SPEC] [--json]
 
 Runs the default live pipeline (LiveSensor with default LiveSettings: the rest reference
 taken from still frames at start-up and refreshed while the pouch is unloaded and still)
 on the simulator's steady press (beadsight.sim.scripted.steady_press: 5 s at rest, then
-a 1.2 mm press at the centre held still), one reading per frame, played as fast as the
+a 1.2 mm press at the centre held still; ``--ramp-feed F``: the finger enters the pouch
+slowly, at F mm/min, a load that grows slowly), one reading per frame, played as fast as the
 sensor reads, with capture stamps one frame period apart (``FrameClock``), so that the
 rest references (once per second of capture time) come at the same frames on any
 machine and a run repeats exactly for one backend (``auto`` picks by speed). The hold
@@ -70,10 +71,12 @@ def run_steady_press(
     drift: str | None = None,
     settings: Any = None,
     seed: int = 0,
+    ramp_feed_mm_min: float | None = None,
 ) -> SteadyPressResult:
     """Hold a simulated press ``hold_s`` s and read it live (module docstring).
 
-    drift: the simulator's drift text; settings: LiveSettings (default: the defaults)."""
+    drift: the simulator's drift text; settings: LiveSettings (default: the defaults);
+    ramp_feed_mm_min: the feed of a slow loading ramp (None: the usual descent)."""
     from beadsight.assets import shipped_model_path
     from beadsight.checkpoint import load_checkpoint
     from beadsight.devices.clock import FrameClock
@@ -83,7 +86,7 @@ def run_steady_press(
     from beadsight.sim.scripted import steady_press
 
     model = load_checkpoint(checkpoint if checkpoint is not None else shipped_model_path())
-    config, presses = steady_press(hold_s)
+    config, presses = steady_press(hold_s, ramp_feed_mm_min=ramp_feed_mm_min)
     camera = SimCamera(
         model.image_size,
         config=config,
@@ -154,6 +157,9 @@ def main() -> None:
     p.add_argument("--checkpoint", default=None, help="checkpoint (default: the shipped sim model)")
     p.add_argument("--backend", default="auto", help="the live backend (default: auto)")
     p.add_argument("--drift", default=None, help="the simulator's drift, e.g. light")
+    p.add_argument(
+        "--ramp-feed", type=float, default=None, help="a slow loading ramp at this feed, mm/min"
+    )
     p.add_argument("--seed", type=int, default=0, help="the simulator's seed")
     p.add_argument("--json", action="store_true", help="print only the JSON object")
     args = p.parse_args()
@@ -161,15 +167,26 @@ def main() -> None:
     from beadsight.live.settings import LiveSettings
 
     settings = LiveSettings(backend=args.backend)
-    result = run_steady_press(
-        args.checkpoint, args.hold_s, drift=args.drift, settings=settings, seed=args.seed
-    )
+    from beadsight.errors import BeadSightError
+
+    try:
+        result = run_steady_press(
+            args.checkpoint,
+            args.hold_s,
+            drift=args.drift,
+            settings=settings,
+            seed=args.seed,
+            ramp_feed_mm_min=args.ramp_feed,
+        )
+    except BeadSightError as error:  # a bad hold, ramp feed or drift; a missing checkpoint
+        p.error(str(error))
     wall = time.perf_counter() - start
     if not args.json:
         print(cpu_summary())
         print(f"{result.summary()} ({wall:.1f} s wall)")
     checkpoint = str(args.checkpoint or "shipped sim model")
-    out = {"checkpoint": checkpoint, "hold_s": args.hold_s, "cpu": cpu_summary(), **asdict(result)}
+    out = {"checkpoint": checkpoint, "hold_s": args.hold_s, "ramp_feed_mm_min": args.ramp_feed}
+    out.update(cpu=cpu_summary(), **asdict(result))
     print(json.dumps({**out, "wall_s": round(wall, 1)}))
 
 

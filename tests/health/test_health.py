@@ -8,13 +8,21 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
 from beadsight.data.rest import REST_FRAMES, RestReference, average_rest
 from beadsight.health.checkup import drift_timeline
-from beadsight.health.monitor import SHIFT_STEP_MM, HealthMonitor, HealthSettings, judge
-from beadsight.health.rest import REST_GUARD_FRAMES
+from beadsight.health.flow import REST_PX, bead_motion
+from beadsight.health.monitor import (
+    SHIFT_STEP_MM,
+    HealthMonitor,
+    HealthSettings,
+    deformation_mm,
+    judge,
+)
+from beadsight.health.rest import REST_GUARD_FRAMES, SLOW_LOAD_MM
 from beadsight.health.stillness import STILL_FRAMES
 from beadsight.health.watch import SensorWatch
 from beadsight.inference.predictor import PressureReading
@@ -78,6 +86,44 @@ def test_a_steady_press_never_refreshes_the_rest():
     assert np.all(np.diff(times) >= 1.0 - 1e-9)
     for r in taken:  # every image is the average of its frames
         assert r.frames == REST_FRAMES and r.image.shape == (SIZE, SIZE, 3)
+
+
+@pytest.mark.parametrize("guard", [True, False])
+def test_a_slow_load_the_model_misses_is_not_taken_for_the_rest(guard, monkeypatch):
+    """A finger enters the pouch at 5 mm/min (a load growing by about 0.5 N/s) and is held;
+    the model misses the load while it grows (reads 0 N) and reads it once held. The rest
+    references are unloaded and still by the readings, but the beads moved locally: none
+    is taken from a loaded pouch, and after the release the next one comes. Without the
+    slow-load guard (the control), the growing load is taken into the rest."""
+    from beadsight.health import rest
+
+    if not guard:
+        monkeypatch.setattr(rest, "SLOW_LOAD_MM", np.inf)
+    config, presses = steady_press(
+        5.0, ramp_feed_mm_min=5.0, rest_s=3.0, config=SimConfig(image_size_px=SIZE)
+    )
+    presses.append(Press(0.0, 0.0, config.clear_z_mm, dwell_s=8.0))  # then rests 8 s
+    taken: list[RestReference] = []
+    watch = SensorWatch(SENSOR_MM, on_rest=taken.append)
+    force_at = {}
+    for record in SimulatedSession(config, 0, presses):
+        t, force = record.frame_index / FPS, float(record.true_force_n)
+        force_at[round(t * FPS)] = force
+        read = 0.0 if record.phase == "descend" else force  # the ramp is missed
+        watch.process(record.frame_rgb, truth(read, t))
+    watch.close()
+    peak = max(force_at.values())
+    assert peak > 5.0  # the held load
+    loads = [  # the largest true force in each rest image's frames
+        max(force_at[round(r.taken_at_s * FPS) - k] for k in range(REST_FRAMES)) for r in taken
+    ]
+    if not guard:  # the control: the ramp's load enters the rest image
+        assert max(loads) > 1.0, loads
+        return
+    assert watch.tracker.refused >= 1
+    assert max(loads) < 0.5, loads
+    release = max(k for k, f in force_at.items() if f > 0) / FPS
+    assert any(r.taken_at_s > release for r in taken)  # at rest again after the release
 
 
 def test_an_unloaded_still_pouch_refreshes_it_and_a_moving_one_does_not():
@@ -196,6 +242,28 @@ def test_a_new_packing_after_a_press_is_not_drift_but_a_shift_across_it_is():
     report = monitor.add(RestReference(shifted, 8, 2.0, "refreshed"), True)
     assert report.figures["camera_shift_mm"] > max(1.0, SHIFT_STEP_MM), report.figures
     assert report.state == "drifting" and "camera_shift_mm" in report.message
+
+
+def test_bead_motion_tells_a_local_push_from_a_drift():
+    """A drift moves the whole image affinely (the beads creeping together, the camera
+    shifted): little local motion. A finger pushes beads aside at one place: local."""
+    rng = np.random.default_rng(3)
+    beads = rng.integers(0, 256, (REST_PX // 4, REST_PX // 4), np.uint8)
+    image = np.repeat(np.repeat(beads, 4, 0), 4, 1).astype(np.float32)
+    image = cv2.GaussianBlur(image, (0, 0), 1.0)
+    centre = (REST_PX - 1) / 2
+    creep = cv2.getRotationMatrix2D((centre, centre), 0, 1.02)  # 0.4 mm at half the view
+    crept = cv2.warpAffine(image, creep, (REST_PX, REST_PX), borderMode=cv2.BORDER_REFLECT)
+    shifted = np.roll(image, 1, axis=1)  # 1 px = 0.64 mm
+    pushed = image.copy()
+    pushed[24:40, 24:40] = np.roll(image[24:40, 24:40], 1, axis=1)  # 10 mm of beads moved
+    assert bead_motion(image, image, SENSOR_MM).local_mm < 0.01
+    motion = bead_motion(image, crept, SENSOR_MM)
+    assert deformation_mm(motion.deformation) > 0.3 and motion.local_mm < SLOW_LOAD_MM / 2
+    motion = bead_motion(image, shifted, SENSOR_MM)
+    assert motion.shift[0] == pytest.approx(SENSOR_MM / REST_PX, rel=0.05)
+    assert motion.local_mm < SLOW_LOAD_MM / 2
+    assert bead_motion(image, pushed, SENSOR_MM).local_mm > 3 * SLOW_LOAD_MM
 
 
 def test_judge_takes_the_worst_figure_and_says_what_to_do():

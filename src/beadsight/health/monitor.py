@@ -47,20 +47,17 @@ import math
 import threading
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from beadsight.config import ConfigError
 from beadsight.data.rest import RestReference
-from beadsight.health.rest import REST_PX, rest_gray
+from beadsight.health.flow import bead_motion, rest_gray
 
 logger = logging.getLogger(__name__)
 
 HEALTH_STATES = ("unknown", "ok", "drifting", "recalibrate")
-FLOW_MARGIN_PX = 4  # flow this close to the image border is left out (px at REST_PX)
 CREEP_STEP_MM = 0.1  # a finished unloaded stretch's deformation counts from this size, mm
 SHIFT_STEP_MM = 0.2  # a shift between two rest states counts from this size, mm
-_FLOW_CONTRAST = 40.0  # images are normalised to this standard deviation before flow
 ADVICE = {  # what to do when a figure is past its "recalibrate" threshold
     "bead_creep_mm": "the beads have settled: recalibrate (beadsight calibrate); the rest "
     "reference follows them by itself",
@@ -125,7 +122,7 @@ UNKNOWN = HealthReport(
 
 @dataclass(frozen=True)
 class _Seen:
-    """A rest state as the figures need it: gray (REST_PX, REST_PX) float32, mean RGB."""
+    """A rest state as the figures need it: gray (:func:`rest_gray`), mean RGB."""
 
     gray: np.ndarray
     mean_rgb: np.ndarray
@@ -133,32 +130,6 @@ class _Seen:
     @classmethod
     def of(cls, rest: RestReference) -> _Seen:
         return cls(rest_gray(rest.image), rest.image.reshape(-1, 3).mean(axis=0))
-
-
-def _flow_basis() -> np.ndarray:
-    """(P, 3): x, y (px from the image centre) and 1 of each pixel inside the margin."""
-    m, n = FLOW_MARGIN_PX, REST_PX
-    rows, cols = np.mgrid[0:n, 0:n].astype(np.float64) - (n - 1) / 2
-    basis = np.stack([cols, rows, np.ones_like(cols)], axis=-1)
-    return basis[m:-m, m:-m].reshape(-1, 3)
-
-
-_BASIS = _flow_basis()
-
-
-def flow_change(before: np.ndarray, after: np.ndarray, sensor_size_mm: float):
-    """The motion from gray image ``before`` to ``after`` (REST_PX px):
-    (deformation (2, 2): the affine part of the flow without translation, as mm of
-    displacement per half field of view; shift (2,): the median flow, mm)."""
-    flow = cv2.calcOpticalFlowFarneback(
-        _normalised(before), _normalised(after), None, 0.5, 3, 15, 3, 5, 1.1, 0
-    )  # (REST_PX, REST_PX, 2) px, before -> after
-    m = FLOW_MARGIN_PX
-    vectors = flow[m:-m, m:-m].reshape(-1, 2).astype(np.float64)
-    coef, *_ = np.linalg.lstsq(_BASIS, vectors, rcond=None)  # (3, 2): d(flow)/dx, /dy, offset
-    mm_per_px = sensor_size_mm / REST_PX
-    deformation = coef[:2].T * (REST_PX / 2) * mm_per_px
-    return deformation, np.median(vectors, axis=0) * mm_per_px
 
 
 def deformation_mm(deformation: np.ndarray) -> float:
@@ -175,13 +146,6 @@ def appearance(reference: _Seen, now: _Seen) -> dict[str, float]:
         "brightness_change_pct": float(brightness),
         "colour_change_pct": float(np.max(np.abs(now_share / ref_share - 1)) * 100),
     }
-
-
-def _normalised(gray: np.ndarray) -> np.ndarray:
-    """Zero-mean, fixed-contrast uint8 (optical flow then ignores brightness changes)."""
-    g = gray.astype(np.float32)
-    g = (g - g.mean()) * (_FLOW_CONTRAST / max(float(g.std()), 1e-3)) + 128.0
-    return np.clip(g, 0, 255).astype(np.uint8)
 
 
 def judge(figures: dict[str, float], thresholds: HealthThresholds) -> tuple[str, str]:
@@ -244,7 +208,8 @@ class DriftState:
         if loaded_before:
             self._finish_stretch(seen)
         else:
-            self._now = flow_change(self._start.gray, seen.gray, self.sensor_size_mm)
+            motion = bead_motion(self._start.gray, seen.gray, self.sensor_size_mm)
+            self._now = motion.deformation, motion.shift
         self._last = seen
         deformation, shift = self._deformation + self._now[0], self._shift + self._now[1]
         return {
@@ -264,7 +229,7 @@ class DriftState:
             self._deformation = total
         if np.linalg.norm(shift) >= SHIFT_STEP_MM:
             self._shift += shift
-        across = flow_change(self._last.gray, seen.gray, self.sensor_size_mm)[1]
+        across = bead_motion(self._last.gray, seen.gray, self.sensor_size_mm).shift
         if np.linalg.norm(across) >= SHIFT_STEP_MM:
             self._shift += across
         self._start, self._now = seen, (np.zeros((2, 2)), np.zeros(2))

@@ -16,7 +16,21 @@ frame, when to take one:
 * **settled**: the rest image's frames are followed by :data:`REST_GUARD_FRAMES` more
   unloaded, still frames, so the first frames of a press (not yet read as a load, not yet
   seen as motion) never enter a rest image;
-* at most one rest reference per :data:`REST_REFRESH_S` of frame time.
+* at most one rest reference per :data:`REST_REFRESH_S` of frame time;
+* **unchanged** (the slow-load guard): a model reads a load that grows slowly (under about
+  1 N/s) as no load at all, so the rules above alone would take it into the rest image,
+  second by second, until a held 7 N reads 0 N. So a rest state is also compared with the
+  *anchor*, an earlier rest reference, by its local bead motion
+  (:func:`~beadsight.health.flow.bead_motion`: the motion an affine drift does not
+  explain, as a finger's does): over :data:`SLOW_LOAD_MM` and it is refused. Unless a
+  load was read since the anchor (a press leaves a new packing), or within
+  :data:`RELAX_S` of the last reading at the contact force (the packing relaxes), each new
+  rest reference becomes the anchor; otherwise the anchor moves on every
+  :data:`ANCHOR_S`, so that a drift (the camera, lighting, the beads creeping as a whole)
+  is followed. A pouch that moved and then stays in its new state for :data:`SETTLE_S`
+  while the model reads no load (a light object left on it, a press the model read under
+  the contact force) is taken as the new rest state. What is left: a load that grows in
+  unread steps with still pauses of :data:`SETTLE_S` between them.
 
 On request (:meth:`RestTracker.request`: the user or robot knows the pouch is unloaded, e.g.
 the gripper is open) the next still frames are taken whatever the readings say: the way
@@ -31,31 +45,33 @@ from the new packing a press leaves.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from collections import deque
 
-import cv2
 import numpy as np
 
 from beadsight.config import ContactThresholds
 from beadsight.data.rest import REST_FRAMES, REST_SETTLE_FRAMES, RestReference, average_rest
+from beadsight.health.flow import bead_motion, rest_gray
 
-REST_PX = 64  # rest images are compared at this size (px per side)
+logger = logging.getLogger(__name__)
+
 UNLOADED_READINGS = REST_SETTLE_FRAMES  # readings judged for "unloaded" (0.5 s at 30 fps)
 REST_GUARD_FRAMES = 12  # unloaded, still frames that must follow a rest image's frames
 REST_REFRESH_S = 1.0  # at most one new rest reference per this much frame time, s
-
-
-def rest_gray(image_rgb: np.ndarray) -> np.ndarray:
-    """image_rgb: (H, W, 3) uint8 RGB -> (REST_PX, REST_PX) float32 gray 0..255."""
-    gray = cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY)
-    return cv2.resize(gray, (REST_PX, REST_PX), interpolation=cv2.INTER_AREA).astype(np.float32)
+# the slow-load guard (module docstring); measured on the simulator, see docs/live.md
+SLOW_LOAD_MM = 0.10  # local bead motion from the anchor that refuses a rest state, mm
+RELAX_S = 3.0  # rest states this soon after a reading at the contact force are not judged, s
+ANCHOR_S = 10.0  # an unchanged rest state becomes the anchor after this long, s
+SETTLE_S = 5.0  # a moved pouch that stays in its new state this long is at rest, s
 
 
 class RestTracker:
     """Takes a rest reference whenever the pouch is unloaded and still (module docstring).
 
+    sensor_size_mm: the side of the frames' field of view (the slow-load guard's mm);
     thresholds: :class:`~beadsight.config.ContactThresholds` (release and contact force);
     refresh_s: frame time between two rest references; have_rest: a rest reference
     already exists (a rest file), so the next one is "refreshed", not "start-up".
@@ -63,12 +79,18 @@ class RestTracker:
 
     def __init__(
         self,
+        sensor_size_mm: float,
         thresholds: ContactThresholds | None = None,
         refresh_s: float = REST_REFRESH_S,
         have_rest: bool = False,
     ):
         self.thresholds = thresholds or ContactThresholds()
         self.refresh_s = float(refresh_s)
+        self.sensor_size_mm = float(sensor_size_mm)
+        self.refused = 0  # rest states refused by the slow-load guard
+        self._contact_s = -math.inf  # frame time of the newest reading at the contact force
+        self._anchor: tuple[np.ndarray, float] | None = None  # gray, frame time
+        self._moved: tuple[np.ndarray, float] | None = None  # the refused state it moved to
         self.taken = 1 if have_rest else 0  # rest references taken (or given)
         self.loaded_since_rest = False  # a reading above the release force since the last
         self.loaded_before = False  # ... before the newest rest reference was taken
@@ -111,6 +133,8 @@ class RestTracker:
             self._recent.append(float(force_n))
             if not self.unloaded:
                 self.loaded_since_rest = True
+            if force_n >= self.thresholds.contact_n:
+                self._contact_s = float(t_s)
         requested = self._requested.is_set()
         startup = self._readings == 0 and self.taken == 0
         if not (still and (requested or self.unloaded or startup)):
@@ -121,15 +145,60 @@ class RestTracker:
             return None
         if not requested and t_s - self._last_s < self.refresh_s:
             return None
-        frames = [f for f, _ in list(self._frames)[:REST_FRAMES]]
+        image = average_rest(np.stack([f for f, _ in list(self._frames)[:REST_FRAMES]]))
         taken_at_s = self._frames[REST_FRAMES - 1][1]
         self._frames.clear()
         self._last_s = t_s
+        if not self._admit(rest_gray(image), float(t_s), requested):
+            return None
         self.loaded_before, self.loaded_since_rest = self.loaded_since_rest, False
         origin = "requested" if requested else "refreshed" if self.taken else "start-up"
         self._requested.clear()
         self.taken += 1
-        return RestReference(average_rest(np.stack(frames)), REST_FRAMES, taken_at_s, origin)
+        return RestReference(image, REST_FRAMES, taken_at_s, origin)
+
+    def _admit(self, gray: np.ndarray, t_s: float, requested: bool) -> bool:
+        """The slow-load guard (module docstring): may this rest state (gray, at frame time
+        ``t_s``) be the rest reference?"""
+        anchor = self._anchor
+        if (
+            anchor is None
+            or requested
+            or self._contact_s > anchor[1]  # a press read since the anchor: a new packing
+            or t_s - self._contact_s < RELAX_S
+        ):
+            self._anchor, self._moved = (gray, t_s), None
+            return True
+        moved_mm = bead_motion(anchor[0], gray, self.sensor_size_mm).local_mm
+        if moved_mm <= SLOW_LOAD_MM:
+            self._moved = None
+            if t_s - anchor[1] >= ANCHOR_S:
+                self._anchor = (gray, t_s)
+            return True
+        moved = self._moved
+        if moved is not None and bead_motion(moved[0], gray, self.sensor_size_mm).local_mm <= (
+            SLOW_LOAD_MM
+        ):
+            if t_s - moved[1] >= SETTLE_S:  # it stayed in its new state: at rest there
+                logger.info(
+                    "rest: the pouch moved %.2f mm locally with no load read and stayed so "
+                    "for %.0f s: taken as the rest state",
+                    moved_mm,
+                    t_s - moved[1],
+                )
+                self._anchor, self._moved = (gray, t_s), None
+                return True
+        else:
+            if moved is None:
+                logger.info(
+                    "rest: not refreshed: the beads moved %.2f mm locally with no load read "
+                    "(a slow or light load?); the rest reference of %.1f s stays",
+                    moved_mm,
+                    anchor[1],
+                )
+            self._moved = (gray, t_s)
+        self.refused += 1
+        return False
 
     def reset(self) -> None:
         """The stream restarted: forget the frames and readings seen (not what was taken)."""

@@ -61,7 +61,9 @@ class SensorWatch:
     ):
         settings = settings or HealthSettings()
         self.stillness = StillnessDetector()
-        self.tracker = RestTracker(thresholds, settings.rest_refresh_s, reference is not None)
+        self.tracker = RestTracker(
+            sensor_size_mm, thresholds, settings.rest_refresh_s, reference is not None
+        )
         self.monitor = (
             HealthMonitor(sensor_size_mm, settings, reference, background) if health else None
         )

@@ -27,13 +27,16 @@ def steady_press(
     xy_mm: tuple[float, float] = (0.0, 0.0),
     depth_mm: float = DEFAULT_DEPTH_MM,
     rest_s: float = DEFAULT_REST_S,
+    ramp_feed_mm_min: float | None = None,
     config: SimConfig | None = None,
 ) -> tuple[SimConfig, list[Press]]:
     """The config and presses of a session that rests, then holds one press still.
 
     hold_s: how long the finger stays down (s); xy_mm: where (mm from the sensor centre);
     depth_mm: how deep below the pouch surface (mm); rest_s: unloaded time before
-    the finger touches (s). Pass both to
+    the finger touches (s); ramp_feed_mm_min: the feed of a slow loading ramp into the
+    pouch (:attr:`~beadsight.sim.press.Press.ramp_feed_mm_min`; None: the config's
+    descend feed), a load that grows slowly. Pass both to
     :class:`~beadsight.devices.virtual.SimCamera` (``config=``, ``presses=``) or
     :class:`~beadsight.sim.session.SimulatedSession`. The config is ``config`` with a
     higher clear Z (for ``rest_s``); the press dwells ``hold_s``.
@@ -46,4 +49,5 @@ def steady_press(
     clear_z_mm = base.surface_z_mm + rest_s * base.descend_feed_mm_min / MM_MIN_PER_MM_S
     cfg = dataclasses.replace(base, clear_z_mm=float(clear_z_mm))
     x, y = (float(v) for v in xy_mm)
-    return cfg, [Press(x, y, float(base.surface_z_mm - depth_mm), dwell_s=float(hold_s))]
+    z_mm = float(base.surface_z_mm - depth_mm)
+    return cfg, [Press(x, y, z_mm, dwell_s=float(hold_s), ramp_feed_mm_min=ramp_feed_mm_min)]
