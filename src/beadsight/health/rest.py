@@ -17,7 +17,7 @@ frame, when to take one:
   unloaded, still frames, so the first frames of a press (not yet read as a load, not yet
   seen as motion) never enter a rest image;
 * at most one rest reference per :data:`REST_REFRESH_S` of frame time;
-* **unchanged** (the slow-load guard): a model reads a load that grows slowly (under about
+* **not moved by a load** (the slow-load guard): a model reads a load that grows slowly (under about
   1 N/s) as no load at all, so the rules above alone would take it into the rest image,
   second by second, until a held 7 N reads 0 N. So a rest state is also compared with the
   *anchor*, an earlier rest reference, by its local bead motion
@@ -176,27 +176,26 @@ class RestTracker:
                 self._anchor = (gray, t_s)
             return True
         moved = self._moved
-        if moved is not None and bead_motion(moved[0], gray, self.sensor_size_mm).local_mm <= (
+        if moved is None or bead_motion(moved[0], gray, self.sensor_size_mm).local_mm > (
             SLOW_LOAD_MM
         ):
-            if t_s - moved[1] >= SETTLE_S:  # it stayed in its new state: at rest there
-                logger.info(
-                    "rest: the pouch moved %.2f mm locally with no load read and stayed so "
-                    "for %.0f s: taken as the rest state",
-                    moved_mm,
-                    t_s - moved[1],
-                )
-                self._anchor, self._moved = (gray, t_s), None
-                return True
-        else:
             if moved is None:
                 logger.info(
-                    "rest: not refreshed: the beads moved %.2f mm locally with no load read "
-                    "(a slow or light load?); the rest reference of %.1f s stays",
+                    "rest: not refreshed: the beads moved %.2f mm locally since the rest "
+                    "state of %.1f s with no load read (a slow or light load?)",
                     moved_mm,
                     anchor[1],
                 )
-            self._moved = (gray, t_s)
+            self._moved = (gray, t_s)  # still moving: wait for it to stay
+        elif t_s - moved[1] >= SETTLE_S:  # it stayed in its new state: at rest there
+            logger.info(
+                "rest: the pouch moved %.2f mm locally with no load read and stayed so for "
+                "%.0f s: taken as the rest state",
+                moved_mm,
+                t_s - moved[1],
+            )
+            self._anchor, self._moved = (gray, t_s), None
+            return True
         self.refused += 1
         return False
 
