@@ -149,7 +149,7 @@ def judge(
     )
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     from beadsight.inference.machine import cpu_summary
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -162,13 +162,14 @@ def main() -> None:
     )
     p.add_argument("--seed", type=int, default=0, help="the simulator's seed")
     p.add_argument("--json", action="store_true", help="print only the JSON object")
-    args = p.parse_args()
+    args = p.parse_args(argv)
+    if args.ramp_feed is not None and not args.ramp_feed > 0:
+        p.error(f"--ramp-feed must be a feed > 0 mm/min, got {args.ramp_feed}")
     start = time.perf_counter()
+    from beadsight.errors import BeadSightError
     from beadsight.live.settings import LiveSettings
 
     settings = LiveSettings(backend=args.backend)
-    from beadsight.errors import BeadSightError
-
     try:
         result = run_steady_press(
             args.checkpoint,

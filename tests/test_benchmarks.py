@@ -171,3 +171,9 @@ def test_live_rest_refuses_a_model_without_a_rest_input(tmp_path, capsys):
     with pytest.raises(SystemExit):  # the command line: a usage error, not a traceback
         live_rest.main(["--checkpoint", str(tmp_path / "missing.pt")])
     assert "missing.pt: checkpoint file not found" in capsys.readouterr().err
+
+
+def test_steady_press_refuses_a_ramp_feed_that_is_not_a_feed(capsys):
+    with pytest.raises(SystemExit):  # a usage error naming the option, not a traceback
+        benchmark("steady_press").main(["--ramp-feed", "0", "--hold-s", "1"])
+    assert "--ramp-feed must be a feed > 0 mm/min, got 0.0" in capsys.readouterr().err

@@ -17,20 +17,20 @@ frame, when to take one:
   unloaded, still frames, so the first frames of a press (not yet read as a load, not yet
   seen as motion) never enter a rest image;
 * at most one rest reference per :data:`REST_REFRESH_S` of frame time;
-* **not moved by a load** (the slow-load guard): a model reads a load that grows slowly (under about
-  1 N/s) as no load at all, so the rules above alone would take it into the rest image,
-  second by second, until a held 7 N reads 0 N. So a rest state is also compared with the
-  *anchor*, an earlier rest reference, by its local bead motion
+* **not moved by a load** (the slow-load guard): a model reads a load that grows slowly
+  (under about 1 N/s) as no load at all, so the rules above alone would take it into the
+  rest image, second by second, until a held 7 N reads 0 N. So a rest state is also
+  compared with the *anchor*, an earlier rest reference, by its local bead motion
   (:func:`~beadsight.health.flow.bead_motion`: the motion an affine drift does not
-  explain, as a finger's does): over :data:`SLOW_LOAD_MM` and it is refused. Unless a
-  load was read since the anchor (a press leaves a new packing), or within
-  :data:`RELAX_S` of the last reading at the contact force (the packing relaxes), each new
-  rest reference becomes the anchor; otherwise the anchor moves on every
-  :data:`ANCHOR_S`, so that a drift (the camera, lighting, the beads creeping as a whole)
-  is followed. A pouch that moved and then stays in its new state for :data:`SETTLE_S`
-  while the model reads no load (a light object left on it, a press the model read under
-  the contact force) is taken as the new rest state. What is left: a load that grows in
-  unread steps with still pauses of :data:`SETTLE_S` between them.
+  explain, as a finger's does), and refused over :data:`SLOW_LOAD_MM`. It is not judged,
+  and becomes the anchor, where a load was read since the anchor (a press leaves a new
+  packing) or a reading at the contact force came within :data:`RELAX_S` (the packing
+  relaxes); otherwise the anchor moves on to an accepted state every :data:`ANCHOR_S`, so
+  that a drift (the camera, lighting, the beads creeping as a whole) is followed. A pouch
+  that moved and then stays in its new state for :data:`SETTLE_S` while the model reads no
+  load (a light object left on it, a press read under the contact force) is taken as the
+  new rest state. What is left: a load that grows in unread steps with still pauses of
+  :data:`SETTLE_S` between them.
 
 On request (:meth:`RestTracker.request`: the user or robot knows the pouch is unloaded, e.g.
 the gripper is open) the next still frames are taken whatever the readings say: the way
