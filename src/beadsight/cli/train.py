@@ -44,6 +44,12 @@ TRAIN_FLAGS = (
         "(for models meant for pouches of other looks)",
         {"type": float},
     ),
+    (
+        "qat",
+        "quantization-aware training: train through the int8 runtime's quantizers, so "
+        "that int8 keeps the paper's metrics with every convolution but the output's "
+        "quantized (for reference-size models on a CPU; usually a fine-tune with --init)",
+    ),
     ("batch_size", "windows per step over all processes"),
     ("lr", "AdamW learning rate"),
     ("lr_schedule", "constant, or cosine: decay from --lr to --lr-min over the run's steps"),

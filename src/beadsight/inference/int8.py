@@ -19,6 +19,8 @@ blocks and the output conv, about 40 % of the convolution work at the reference 
 kept in fp32, sit about the gate's 2 % edge: the shipped model's CoP error moves by +1.7
 % (AVX-512 VNNI, 2 threads) to +4.9 % (1 thread), every other metric by under 1.6 %; the
 reference-size model's MAE by +2.0 % (docs/live.md). Quantizing more moved them further.
+Quantization-aware training (``beadsight train --qat``, :mod:`beadsight.train.qat`)
+brought the reference-size model within the gate with this recipe (docs/live.md).
 
 Whether the result may be used is decided on the paper's metrics, not pixel by pixel:
 :func:`beadsight.inference.metric_parity.metric_parity` (the ``int8`` runtime and auto
@@ -87,8 +89,10 @@ class QuantizationRecipe:
     def key(self) -> str:
         return f"{self.preset}-{self.ranges}-{'+'.join(self.fp32_blocks) or 'all'}-fp32out"
 
-    def nncf_options(self, nncf) -> dict:
-        """Keyword arguments of :func:`nncf.quantize` for this recipe."""
+    def nncf_options(self, nncf, graph: str = "onnx") -> dict:
+        """Keyword arguments of :func:`nncf.quantize` for this recipe, on the model as
+        the runtimes export it (``graph="onnx"``) or on the torch U-Net itself ("torch":
+        quantization-aware training, :mod:`beadsight.train.qat`)."""
         from nncf.quantization.advanced_parameters import AdvancedQuantizationParameters
         from nncf.quantization.range_estimator import RangeEstimatorParametersSet
 
@@ -104,9 +108,13 @@ class QuantizationRecipe:
         # The pressure map itself is never quantized: NNCF puts a quantizer on the output
         # ReLU for the Gather that picks its channel (`[:, 0]`), which cut every map at the
         # calibration presses' peak (140 kPa for the shipped model) in steps of 1/255 of it.
-        patterns = []
-        if self.fp32_blocks:  # names of torch's ONNX export: /net/C1/layer/layer.0/Conv
-            patterns.append(f".*/net/({'|'.join(self.fp32_blocks)})/.*")
+        blocks = "|".join(self.fp32_blocks)
+        if graph == "torch":  # node names of NNCF's torch graph: C1/layer/0/conv2d/0
+            # (the network's output is the U-Net's; its channel is picked outside it)
+            patterns = [f"({blocks})/.*"] if blocks else []
+            options["ignored_scope"] = nncf.IgnoredScope(patterns=patterns)
+            return options
+        patterns = [f".*/net/({blocks})/.*"] if blocks else []  # /net/C1/layer/layer.0/Conv
         options["ignored_scope"] = nncf.IgnoredScope(patterns=patterns, types=["Gather"])
         return options
 

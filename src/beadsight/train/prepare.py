@@ -127,6 +127,8 @@ def trainable_parameters(net: torch.nn.Module, layers: str) -> list[torch.nn.Par
         raise ConfigError(f"train_layers must be one of {TRAIN_LAYERS}, got {layers!r}")
     chosen = []
     for name, param in net.named_parameters():
+        if not param.is_floating_point():  # a quantizer's settings (--qat)
+            continue
         train = layers == "all" or name.split(".")[0] in DECODER_LAYERS
         param.requires_grad_(train)
         if train:

@@ -62,6 +62,7 @@ from beadsight.train.prepare import (
     tampered_state_errors,
     trainable_parameters,
 )
+from beadsight.train.qat import plain_weights, quantization_aware, quantizer_state
 from beadsight.train.run import CONFIG_FILE, SPLIT_FILE, RunFolder
 from beadsight.train.step import autocast, model_inputs, optimizer_step
 from beadsight.train.threads import training_threads
@@ -120,9 +121,27 @@ class Trainer:
         self.model = model
         self.module = self.model.module.to(self.device).train()
         self.scale = float(self.model.meta.output_scale_kpa)
+        if config.qat:
+            self._quantization_aware()
         self._make_optimizer()
         self._make_loaders()
         self._write_run_files()
+
+    def _quantization_aware(self) -> None:
+        """Train the U-Net through the int8 runtime's fake quantizers (train/qat.py); the
+        plain U-Net is kept to save the weights into."""
+        if self.dist.world > 1:
+            raise ConfigError("--qat trains in one process; run it without torchrun")
+        self.plain_net = self.module.net
+        net = quantization_aware(self.model).to(self.device).train()
+        if self.resume_state is not None:
+            with tampered_state_errors(self.run.last):
+                net.load_state_dict({**plain_weights(net), **self.resume_state["qat_quantizers"]})
+        self.module.net = net
+        self._info(
+            "quantization-aware: training through the int8 runtime's quantizers (every "
+            "convolution but the output's); checkpoints keep fp32 weights"
+        )
 
     def _make_optimizer(self) -> None:
         config = self.config
@@ -267,6 +286,11 @@ class Trainer:
         failure: WriteError | None = None
         if self.dist.is_main:
             self.model.meta.training = self._training_meta()
+            net, qat = self.module.net, {}
+            if self.config.qat:  # the plain U-Net with the trained weights is saved
+                self.plain_net.load_state_dict(plain_weights(net))
+                self.module.net = self.plain_net
+                qat["qat_quantizers"] = quantizer_state(net)
             try:
                 self.run.save_checkpoints(
                     self.model,
@@ -279,9 +303,12 @@ class Trainer:
                     elapsed_s=self._elapsed(),
                     best_val=self.best,
                     **rng,
+                    **qat,
                 )
             except WriteError as e:
                 failure = e
+            finally:
+                self.module.net = net
         if self.dist.any(failure is not None, self.device):  # all ranks stop together
             raise failure or WriteError(f"rank 0 could not write {self.run.last}")
         self._last_save = time.monotonic()
