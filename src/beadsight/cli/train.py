@@ -46,9 +46,9 @@ TRAIN_FLAGS = (
     ),
     (
         "qat",
-        "quantization-aware training: train through the int8 runtime's quantizers, so "
-        "that int8 keeps the paper's metrics with every convolution but the output's "
-        "quantized (for reference-size models on a CPU; usually a fine-tune with --init)",
+        "quantization-aware training: train through int8 quantizers so that the int8 "
+        "runtime keeps the paper's metrics (for reference-size models on a CPU; a "
+        "fine-tune with --init; needs nncf)",
     ),
     ("batch_size", "windows per step over all processes"),
     ("lr", "AdamW learning rate"),

@@ -127,7 +127,7 @@ class TrainConfig(_Serializable):
     rest_input: bool = False  # rest-referenced model: it also sees the pouch at rest
     rest_norm: bool = False  # ... normalised by the rest image's own contrast (ModelConfig)
     color_jitter: float = 0.0  # strength of random colour/contrast changes (0: none; 1: strong)
-    qat: bool = False  # quantization-aware: train through the int8 runtime's quantizers
+    qat: bool = False  # quantization-aware: train through int8 fake quantizers
     progress: bool = True  # tqdm progress bars
 
     def __post_init__(self) -> None:

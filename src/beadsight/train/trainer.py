@@ -128,7 +128,7 @@ class Trainer:
         self._write_run_files()
 
     def _quantization_aware(self) -> None:
-        """Train the U-Net through the int8 runtime's fake quantizers (train/qat.py); the
+        """Train the U-Net through int8 fake quantizers (train/qat.py); the
         plain U-Net is kept to save the weights into."""
         if self.dist.world > 1:
             raise ConfigError("--qat trains in one process; run it without torchrun")
@@ -139,8 +139,8 @@ class Trainer:
                 net.load_state_dict({**plain_weights(net), **self.resume_state["qat_quantizers"]})
         self.module.net = net
         self._info(
-            "quantization-aware: training through the int8 runtime's quantizers (every "
-            "convolution but the output's); checkpoints keep fp32 weights"
+            "quantization-aware: training through int8 quantizers at every convolution but "
+            "the output's; checkpoints keep fp32 weights"
         )
 
     def _make_optimizer(self) -> None:
