@@ -24,7 +24,8 @@ import torch
 
 from beadsight.checkpoint import PressureModel
 from beadsight.errors import ConfigError
-from beadsight.inference.int8 import QuantizationRecipe
+from beadsight.inference.int8 import QuantizationRecipe, calibration_windows
+from beadsight.inference.machine import import_openvino
 from beadsight.train.step import model_inputs
 
 QUANTIZED = QuantizationRecipe(fp32_blocks=("pred",))  # what training quantizes
@@ -35,9 +36,8 @@ def quantization_aware(model: PressureModel) -> torch.nn.Module:
     """A copy of ``model``'s U-Net with NNCF fake quantizers as :data:`QUANTIZED` puts
     them, ranged on the int8 runtime's calibration windows (simulated presses at the
     model's size) through ``model``'s normalisation."""
-    from beadsight.inference.int8 import calibration_windows
-
     try:
+        import_openvino()  # first: nncf must not load its telemetry
         import nncf
     except ImportError:
         raise ConfigError("--qat needs nncf; `pip install beadsight[openvino]`") from None
