@@ -61,7 +61,7 @@ def test_qat_trains_through_the_int8_quantizers_and_saves_plain_weights(make_dat
         progress=False,
     )
     trainer = _trainer(config)
-    net, plain = trainer.module.net, trainer.plain_net
+    net, plain = trainer.module.net, trainer.qat.plain
     assert quantizer_state(net) and not quantizer_state(plain)
     quantized = {k.split(".")[2].split("/")[0] for k in quantizer_state(net)}  # C1/layer/...
     assert {"C1", "C9", "D1", "U4"} <= quantized and "pred" not in quantized

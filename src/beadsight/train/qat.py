@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import sys
+from collections.abc import Iterator
 
 import torch
 
@@ -71,3 +72,30 @@ def plain_weights(net: torch.nn.Module) -> dict[str, torch.Tensor]:
 def quantizer_state(net: torch.nn.Module) -> dict[str, torch.Tensor]:
     """The quantizers' state (learnt ranges) of a :func:`quantization_aware` copy."""
     return {k: v.detach().cpu() for k, v in net.state_dict().items() if k.startswith(QUANTIZERS)}
+
+
+class QuantizationAware:
+    """A ``--qat`` run's two U-Nets: ``module.net`` becomes the :func:`quantization_aware`
+    copy that trains, and the plain one is kept to save the trained weights into."""
+
+    def __init__(self, model: PressureModel):
+        self.module, self.plain = model.module, model.module.net
+        net = quantization_aware(model).to(next(self.plain.parameters()).device).train()
+        self.module.net = net
+
+    def restore(self, ranges: dict[str, torch.Tensor]) -> None:
+        """Put back the quantizers' state that :meth:`saving` gave (a resumed run)."""
+        net = self.module.net
+        net.load_state_dict({**plain_weights(net), **ranges})
+
+    @contextlib.contextmanager
+    def saving(self) -> Iterator[dict[str, dict[str, torch.Tensor]]]:
+        """Within: ``module.net`` is the plain U-Net holding the trained weights; yields
+        the training state to save beside them (the quantizers' ranges)."""
+        net = self.module.net
+        self.plain.load_state_dict(plain_weights(net))
+        self.module.net = self.plain
+        try:
+            yield {"qat_quantizers": quantizer_state(net)}
+        finally:
+            self.module.net = net

@@ -32,6 +32,7 @@ GPUs, gloo on CPUs): windows are sharded like ``DistributedSampler``,
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -62,7 +63,7 @@ from beadsight.train.prepare import (
     tampered_state_errors,
     trainable_parameters,
 )
-from beadsight.train.qat import plain_weights, quantization_aware, quantizer_state
+from beadsight.train.qat import QuantizationAware
 from beadsight.train.run import CONFIG_FILE, SPLIT_FILE, RunFolder
 from beadsight.train.step import autocast, model_inputs, optimizer_step
 from beadsight.train.threads import training_threads
@@ -128,16 +129,13 @@ class Trainer:
         self._write_run_files()
 
     def _quantization_aware(self) -> None:
-        """Train the U-Net through int8 fake quantizers (train/qat.py); the
-        plain U-Net is kept to save the weights into."""
+        """Train the U-Net through int8 fake quantizers (train/qat.py)."""
         if self.dist.world > 1:
             raise ConfigError("--qat trains in one process; run it without torchrun")
-        self.plain_net = self.module.net
-        net = quantization_aware(self.model).to(self.device).train()
+        self.qat = QuantizationAware(self.model)
         if self.resume_state is not None:
             with tampered_state_errors(self.run.last):
-                net.load_state_dict({**plain_weights(net), **self.resume_state["qat_quantizers"]})
-        self.module.net = net
+                self.qat.restore(self.resume_state["qat_quantizers"])
         self._info(
             "quantization-aware: training through int8 quantizers at every convolution but "
             "the output's; checkpoints keep fp32 weights"
@@ -286,29 +284,24 @@ class Trainer:
         failure: WriteError | None = None
         if self.dist.is_main:
             self.model.meta.training = self._training_meta()
-            net, qat = self.module.net, {}
-            if self.config.qat:  # the plain U-Net with the trained weights is saved
-                self.plain_net.load_state_dict(plain_weights(net))
-                self.module.net = self.plain_net
-                qat["qat_quantizers"] = quantizer_state(net)
+            saving = self.qat.saving() if self.config.qat else contextlib.nullcontext({})
             try:
-                self.run.save_checkpoints(
-                    self.model,
-                    best,
-                    optimizer=self.optimizer.state_dict(),
-                    scaler=self.scaler.state_dict() if self.scaler is not None else None,
-                    step=self.step,
-                    epoch=self.step // self.steps_per_epoch,
-                    steps_per_epoch=self.steps_per_epoch,
-                    elapsed_s=self._elapsed(),
-                    best_val=self.best,
-                    **rng,
-                    **qat,
-                )
+                with saving as qat:  # --qat: the plain U-Net with the trained weights
+                    self.run.save_checkpoints(
+                        self.model,
+                        best,
+                        optimizer=self.optimizer.state_dict(),
+                        scaler=self.scaler.state_dict() if self.scaler is not None else None,
+                        step=self.step,
+                        epoch=self.step // self.steps_per_epoch,
+                        steps_per_epoch=self.steps_per_epoch,
+                        elapsed_s=self._elapsed(),
+                        best_val=self.best,
+                        **rng,
+                        **qat,
+                    )
             except WriteError as e:
                 failure = e
-            finally:
-                self.module.net = net
         if self.dist.any(failure is not None, self.device):  # all ranks stop together
             raise failure or WriteError(f"rank 0 could not write {self.run.last}")
         self._last_save = time.monotonic()
