@@ -6,6 +6,7 @@ import json
 
 from beadsight.assets import shipped_model_path
 from beadsight.checkpoint import load_checkpoint
+from beadsight.inference.int8 import ACCURATE
 from beadsight.live.bench import bench_tiers, tiers_summary
 
 
@@ -38,7 +39,11 @@ def test_tiers_report_rate_latency_speedup_and_metric_deltas(tmp_path):
     # can be right here
     worst = max(map(abs, rows[2]["metric_deltas_pct"].values()))
     assert rows[2]["metric_parity_ok"] == (worst <= 2) and worst < 10
+    # int8 runs the first recipe its gate passes (the last one, refused, when none does)
+    assert [r["int8_recipe"] for r in rows[:2]] == [None, None]
+    assert rows[2]["int8_recipe"] == ACCURATE.key or rows[2]["metric_parity_ok"]
     assert worst > 0  # it is not fp32
     text = tiers_summary(result)
     assert "int8/int8" in text and "metric gate passes" in text and result["cpu"] in text
+    assert f"(recipe {rows[2]['int8_recipe']})" in text
     assert "camera 30 Hz" in text and "age p99" in text

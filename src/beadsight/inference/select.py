@@ -41,7 +41,7 @@ from beadsight.inference.export_format import (
     check_exported_matches,
     model_fingerprint,
 )
-from beadsight.inference.int8 import Int8Backend, gated_int8
+from beadsight.inference.int8 import Int8Backend, gated_int8, judged_int8
 from beadsight.inference.machine import default_cache_dir, importable, machine_key
 from beadsight.inference.metric_parity import MetricParityError
 from beadsight.inference.parity import (
@@ -317,6 +317,8 @@ def create_backend(
     :class:`~beadsight.inference.export_format.ExportError` if it was made from another);
     with backend "auto" the format picks the backend. cache_dir: "default" ->
     :func:`~beadsight.inference.machine.default_cache_dir`, None -> no disk cache.
+    check=False: nothing is refused (what ``evaluate`` runs: scoring it is the check);
+    int8 still runs the recipe its metric gate picks, as live sensing would.
     """
     cache = default_cache_dir() if cache_dir == "default" else cache_dir
     cache = Path(cache) if cache else None
@@ -326,8 +328,8 @@ def create_backend(
         return select_backend(model, precision, device, cache, threads)
     _check_precision(precision)
     prec = ("fp32" if backend != "int8" else INT8) if precision == "auto" else precision
-    if check and backend == "int8" and prec == INT8:
-        return gated_int8(model, cache, threads)
+    if backend == "int8" and prec == INT8:  # the recipe the metric gate picks
+        return gated_int8(model, cache, threads) if check else judged_int8(model, cache, threads)
     result = build_backend(model, backend, prec, device, None, cache, threads)
     if check and not (backend == "torch" and prec == "fp32"):
         require_parity(result, model)

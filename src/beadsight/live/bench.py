@@ -368,10 +368,11 @@ def stats_json(stats: LiveStats, **extra: Any) -> dict[str, Any]:
 TIER_FRAMES = 300  # frames per throughput run of each tier
 
 
-def _tier_backends(model: PressureModel, cache_dir: Any, threads: int | None):
+def _tier_backends(model: PressureModel, cache_dir: Any, threads: int | None, presses, reference):
     """(tier, build) pairs: eager torch fp32, the fastest fp32 runtime that agrees with
-    it (auto selection among the others), and int8 (built without its gate: the gate's
-    figures are reported instead)."""
+    it (auto selection among the others), and int8 by the recipe its gate picks (timed
+    even when every recipe is refused: the gate's figures are reported beside it)."""
+    from beadsight.inference.int8 import judged_int8
     from beadsight.inference.select import auto_candidates, build_backend, select_backend
 
     others = [c for c in auto_candidates("fp32") if c[0] != "torch"]
@@ -386,7 +387,7 @@ def _tier_backends(model: PressureModel, cache_dir: Any, threads: int | None):
             "best fp32",
             lambda: select_backend(model, "fp32", None, cache, threads, candidates=others),
         ),
-        ("int8", lambda: build_backend(model, "int8", "int8", cache_dir=cache, threads=threads)),
+        ("int8", lambda: judged_int8(model, cache, threads, presses=presses, reference=reference)),
     )
 
 
@@ -401,10 +402,13 @@ def bench_tier(
 ) -> dict:
     """One runtime: max throughput through the predictor, ``count`` frames offered at
     ``rate_hz`` (the camera: is the rate held, and how old is each reading when it is
-    out?) and its metric parity (``reference``: fp32 torch's maps of ``presses``)."""
-    from beadsight.inference.metric_parity import metric_parity
+    out?) and its metric parity (``reference``: fp32 torch's maps of ``presses``; the
+    int8 gate's verdict where it judged the backend on them)."""
+    from beadsight.inference.metric_parity import MetricParity, metric_parity
 
-    parity = metric_parity(backend, model, presses, reference=reference)
+    parity = getattr(backend, "parity", None)  # fp32 runtimes': element-wise
+    if not isinstance(parity, MetricParity):
+        parity = metric_parity(backend, model, presses, reference=reference)
     predictor = PressurePredictor(model, backend, settings=PredictorSettings(on_gap="ignore"))
     try:
         stats = run_max_throughput(predictor, frames, count)
@@ -413,6 +417,7 @@ def bench_tier(
         predictor.close()
     return {
         "backend": backend.describe(),
+        "int8_recipe": getattr(backend, "recipe", None) and backend.recipe.key,
         "readings_per_s": stats.hz,
         "p50_ms": stats.p50_ms,
         "p99_ms": stats.p99_ms,
@@ -452,7 +457,7 @@ def bench_tiers(
         presses = simulated_presses(model)
         reference = fp32_maps(model, presses)
         rows = []
-        for tier, build in _tier_backends(model, cache_dir, threads):
+        for tier, build in _tier_backends(model, cache_dir, threads, presses, reference):
             backend = build()
             row = bench_tier(model, backend, source, frames, presses, reference, rate_hz)
             rows.append({"tier": tier, **row})
@@ -487,6 +492,8 @@ def tiers_summary(result: dict[str, Any]) -> str:
                 for k, v in row["metric_deltas_pct"].items()
             )
             gate = "passes" if row["metric_parity_ok"] else "fails"
+            if row["int8_recipe"]:
+                gate += f" (recipe {row['int8_recipe']})"
             cam = row["camera"]
             lines.append(
                 f"  {row['tier']:16s} {row['backend']:14s} {row['readings_per_s'] or 0:7.1f}/s "
