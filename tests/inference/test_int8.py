@@ -27,6 +27,7 @@ from beadsight.inference.int8 import (
     calibration_windows,
     gated_int8,
 )
+from beadsight.inference.machine import import_openvino
 from beadsight.inference.metric_parity import (
     HELDOUT_PRESSES,
     HELDOUT_SEED,
@@ -151,9 +152,7 @@ def test_int8_does_not_cut_the_pressure_map(sim_model, heldout, reference, int8_
 def _quantized_inputs(xml_path, types):
     """Names of the ``types`` nodes of an OpenVINO IR whose input comes out of a
     FakeQuantize (NNCF's quantizer)."""
-    import openvino as ov
-
-    model = ov.Core().read_model(str(xml_path))
+    model = import_openvino().Core().read_model(str(xml_path))
     return sorted(
         op.get_friendly_name()
         for op in model.get_ops()
