@@ -7,7 +7,7 @@ import json
 from beadsight.assets import shipped_model_path
 from beadsight.checkpoint import load_checkpoint
 from beadsight.inference.int8 import ACCURATE
-from beadsight.live.bench import bench_tiers, tiers_summary
+from beadsight.live.tiers import bench_tiers, tiers_summary
 
 
 def test_tiers_report_rate_latency_speedup_and_metric_deltas(tmp_path):

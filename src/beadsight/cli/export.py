@@ -174,13 +174,8 @@ def _bench_live(args: argparse.Namespace) -> int:
 def _bench_tiers(args: argparse.Namespace) -> int:
     from beadsight.assets import shipped_model_path
     from beadsight.checkpoint import load_checkpoint
-    from beadsight.live.bench import (
-        DEFAULT_RATE_HZ,
-        TIER_FRAMES,
-        bench_tiers,
-        random_model,
-        tiers_summary,
-    )
+    from beadsight.live.bench import DEFAULT_RATE_HZ, random_model
+    from beadsight.live.tiers import TIER_FRAMES, bench_tiers, tiers_summary
 
     if args.rate is not None and not args.rate > 0:
         from beadsight.errors import ConfigError
