@@ -102,9 +102,8 @@ class QuantizationRecipe:
     @property
     def key(self) -> str:
         blocks = "+".join(self.fp32_blocks) or "all"
-        return (
-            f"{self.preset}-{self.ranges}-{blocks}{'-whole' if self.whole_blocks else ''}-fp32out"
-        )
+        whole = "-whole" if self.whole_blocks else ""
+        return f"{self.preset}-{self.ranges}-{blocks}{whole}-fp32out"
 
     def nncf_options(self, nncf, graph: str = "onnx") -> dict:
         """Keyword arguments of :func:`nncf.quantize` for this recipe, on the model as
@@ -324,7 +323,7 @@ def judged_int8(
                     HELDOUT_PRESSES,
                     f" (the verdicts are kept in {path.parent})" if path else "",
                 )
-                presses = presses or simulated_presses(model)
+                presses = simulated_presses(model) if presses is None else presses
                 reference = fp32_maps(model, presses)
                 require_meaningful(model, presses, reference)
             backend = Int8Backend(model, cache_dir=cache_dir, threads=threads, recipe=recipe)
