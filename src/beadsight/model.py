@@ -250,18 +250,27 @@ class FramesToPressure(nn.Module):
 
     def _relative(self, rest: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
         """rest (B, 1, 3, H, W), seen (B, T, 3, H, W) normalised -> (B, 3 + 3T, H, W):
-        the rest image, then each seen frame's change from it.
+        the rest image, then each seen frame's change from it (:meth:`rest_terms`)."""
+        return torch.cat(self.rest_terms(rest, seen), dim=1).flatten(1, 2)
+
+    def rest_terms(
+        self, rest: torch.Tensor, frames: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """rest (B, 1, 3, H, W), frames (B, N, 3, H, W) normalised -> the rest image's
+        planes of the network input (B, 1, 3, H, W) and each frame's (B, N, 3, H, W): its
+        change from the rest image. Each frame's term depends on that frame and the rest
+        image alone, so a streaming runtime can compute it once per frame.
 
         With ``rest_norm`` both are in units of the rest image's own per-channel contrast
         (its spatial standard deviation), and the rest image is centred on its mean: the
         input no longer changes when a pouch's colours are scaled or shifted, rest and
         window alike (another LED, exposure or bead tint)."""
-        change = seen - rest
+        change = frames - rest
         if self.net.config.rest_norm:
             mean = rest.mean(dim=(-2, -1), keepdim=True)  # (B, 1, 3, 1, 1)
             scale = (rest - mean).square().mean(dim=(-2, -1), keepdim=True).add(1e-4).rsqrt()
             rest, change = (rest - mean) * scale, change * scale
-        return torch.cat([rest, change], dim=1).flatten(1, 2)
+        return rest, change
 
     def pressure(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 3T, H, W) network input -> (B, H, W) kPa."""

@@ -12,7 +12,7 @@ from beadsight.checkpoint import load_checkpoint
 from beadsight.data.dataset import open_dataset
 from beadsight.data.windows import RestImages
 from beadsight.evaluation.predict import predict_recording
-from beadsight.inference.runtimes import CudaGraphBackend, TorchBackend
+from beadsight.inference.runtimes import CudaGraphBackend, OpenVinoBackend, TorchBackend
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # a shared 2-core machine
 
@@ -33,13 +33,15 @@ def offline(rest_run, tmp_path_factory) -> tuple[np.ndarray, np.ndarray]:
         return f["valid"][()], f["pressure_kpa"][()]
 
 
-@pytest.mark.parametrize("ring", ["torch", "device ring on the CPU"])
+@pytest.mark.parametrize("ring", ["torch", "device ring on the CPU", "openvino planes"])
 def test_predict_matches_the_streaming_runtime_with_the_same_rest(rest_run, offline, ring):
     data, checkpoint = rest_run
     model = load_checkpoint(checkpoint)
     valid, maps = offline
     if ring == "torch":
         backend = TorchBackend(model)
+    elif ring == "openvino planes":  # a new rest image recomputes the ring's planes
+        backend = OpenVinoBackend(model, "fp32", threads=1)
     else:
         backend = CudaGraphBackend(model, "fp32", device="cpu", use_graphs=False)
     with open_dataset(data) as ds:

@@ -11,6 +11,7 @@ from helpers.isolated import run_isolated
 from beadsight.checkpoint import PressureModel
 from beadsight.inference.machine import default_threads, usable_cores
 from beadsight.inference.parity import PARITY_TOLERANCE, ParityError, check_parity, probe_window
+from beadsight.inference.planes import ring_inputs
 from beadsight.inference.predictor import PressurePredictor
 from beadsight.inference.runtimes import (
     Backend,
@@ -119,6 +120,21 @@ def test_torch_incremental_normalisation_matches_stateless(probe_model, strided_
     _incremental_matches_run(TorchBackend(probe_model), probe_model, stream(T + 32))
     w = strided_model.span
     _incremental_matches_run(TorchBackend(strided_model), strided_model, stream(w + 32))
+
+
+@pytest.mark.parametrize("name", ["onnx", "openvino"])
+def test_file_runtimes_stream_through_the_plane_ring(probe_model, strided_model, name):
+    """The file runtimes built from a checkpoint run the network on planes that each frame
+    gets once; a stride keeps one ring per phase. The input handed to the runtime is a
+    view into the ring, contiguous: no per-frame copy of the window."""
+    for model in (probe_model, strided_model):
+        backend = build_backend(model, name, "fp32", cache_dir=None)
+        _incremental_matches_run(backend, model, stream(model.span + 32))
+        window = stream(model.span, seed=3)[None]
+        planes = backend.planes.update(window, model.span)
+        assert planes.flags.c_contiguous and np.shares_memory(planes, backend.planes._slots)
+        np.testing.assert_array_equal(planes, ring_inputs(model.module, window))
+        backend.close()
 
 
 def test_device_ring_logic_on_cpu(probe_model, strided_model):
@@ -234,3 +250,24 @@ def test_openvino_runtimes_closed_in_order_leave_python_signal_handlers_working(
         """
     )
     assert proc.returncode == 0 and "handled [True]" in proc.stdout, proc.stderr
+
+
+@pytest.mark.parametrize("fixture", ["rest_model", "rest_norm_model"])
+def test_plane_ring_of_a_rest_referenced_model(fixture, request):
+    """Strided, rest-referenced (contrast-normalised too): streamed through OpenVINO's plane
+    ring with a rest image that changes mid-stream (the ring's planes are recomputed) and a
+    gap of 3 frames, every reading is the module's on the same rest image and window."""
+    model = request.getfixturevalue(fixture)
+    backend = build_backend(model, "openvino", "fp32", cache_dir=None)
+    span, frames = model.span, stream(model.span + 20, seed=5)
+    rests = [stream(1, seed=21)[0], stream(1, seed=22)[0]]
+    end, step = span - 1, span
+    while end < len(frames):
+        rest = rests[int(end >= span + 9)]
+        window = frames[None, end - span + 1 : end + 1]
+        got = backend.run_incremental(np.ascontiguousarray(window), step, rest)
+        expected = model.predict(np.concatenate([rest[None], window[0]]))
+        np.testing.assert_allclose(got[0], expected, atol=1e-4, rtol=0)
+        step = 3 if end == span + 4 else 1
+        end += step
+    backend.close()

@@ -128,29 +128,35 @@ def check_exported_matches(path: str | Path, model: PressureModel) -> dict[str, 
 
 
 # --- writing ------------------------------------------------------------------------
+def onnx_bytes(module: torch.nn.Module, example: torch.Tensor, input_name: str) -> bytes:
+    """``module`` (on the CPU) exported to ONNX on ``example``, batch axis dynamic."""
+    buffer = io.BytesIO()
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")  # legacy-exporter deprecation, instance_norm notes
+        torch.onnx.export(
+            module,
+            (example,),
+            buffer,
+            dynamo=False,
+            input_names=[input_name],
+            output_names=[OUTPUT_NAME],
+            dynamic_axes={input_name: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
+            opset_version=ONNX_OPSET,
+        )
+    return buffer.getvalue()
+
+
 def _onnx_proto(model: PressureModel, precision: str):
     """The model's module as an ONNX ModelProto carrying the metadata."""
     onnx = require("onnx", "export")
     module, device = model.module, model.device
     shape = (1, model.inputs, model.image_size, model.image_size, 3)
-    buffer = io.BytesIO()
     module.to("cpu")
     try:
-        with warnings.catch_warnings(), torch.no_grad():
-            warnings.simplefilter("ignore")  # legacy-exporter deprecation, instance_norm notes
-            torch.onnx.export(
-                module,
-                (torch.zeros(shape, dtype=torch.uint8),),
-                buffer,
-                dynamo=False,
-                input_names=[INPUT_NAME],
-                output_names=[OUTPUT_NAME],
-                dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
-                opset_version=ONNX_OPSET,
-            )
+        data = onnx_bytes(module, torch.zeros(shape, dtype=torch.uint8), INPUT_NAME)
     finally:
         module.to(device)
-    proto = onnx.load_model_from_string(buffer.getvalue())
+    proto = onnx.load_model_from_string(data)
     del proto.metadata_props[:]
     for key, value in exported_metadata(model, precision).items():
         entry = proto.metadata_props.add()

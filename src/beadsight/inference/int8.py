@@ -1,11 +1,12 @@
 """INT8: OpenVINO running the model after NNCF post-training quantization.
 
-The checkpoint is exported to ONNX (the same cached file the ``onnx`` and ``openvino``
-runtimes use), quantized by :func:`nncf.quantize` on **simulated windows that include
-presses** (:func:`calibration_windows`: the simulator at the model's size, a seed the
-metric gate never uses), and saved as OpenVINO IR under ``cache_dir/int8`` keyed by the
-checkpoint's fingerprint, the machine, the calibration and the recipe; later runs load
-it.
+The checkpoint's network is exported to ONNX on float32 input planes (the same cached
+file the ``onnx`` and ``openvino`` runtimes use; streaming computes each frame's planes
+once, :mod:`beadsight.inference.planes`), quantized by :func:`nncf.quantize` on
+**simulated windows that include presses** (:func:`calibration_windows`: the simulator
+at the model's size, a seed the metric gate never uses), and saved as OpenVINO IR under
+``cache_dir/int8`` keyed by the checkpoint's fingerprint, the machine, the calibration,
+the recipe and the graph; later runs load it.
 
 The recipes (:class:`QuantizationRecipe`) were chosen by the metric gate. Every recipe
 leaves the pressure map itself in fp32: NNCF otherwise puts a quantizer on the model's
@@ -43,6 +44,7 @@ import logging
 import re
 import sys
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,6 +70,7 @@ from beadsight.inference.metric_parity import (
     require_metric_parity,
     simulated_presses,
 )
+from beadsight.inference.planes import GRAPH_VERSION, ring_inputs
 from beadsight.inference.runtimes import OpenVinoBackend
 
 log = logging.getLogger(__name__)
@@ -174,7 +177,7 @@ def _calibration_key(windows: np.ndarray | None, recipe: QuantizationRecipe) -> 
         data = f"{recipe_text}|{CALIBRATION_WINDOWS_PER_PRESS}".encode()
     else:
         data = np.ascontiguousarray(windows).tobytes()
-    return hashlib.sha256(data + recipe.key.encode()).hexdigest()[:12]
+    return hashlib.sha256(data + f"{recipe.key}|{GRAPH_VERSION}".encode()).hexdigest()[:12]
 
 
 def _openvino():
@@ -194,14 +197,15 @@ def quantize(
     windows: np.ndarray,
     out: Path,
     recipe: QuantizationRecipe = ACCURATE,
+    prepare: Callable[[np.ndarray], np.ndarray] = lambda images: images,
 ) -> Path:
     """Quantize the ONNX model at ``onnx_path`` (input reshaped to ``shape``) with NNCF on
-    ``windows`` ((K, inputs, S, S, 3) uint8) as ``recipe`` says; write OpenVINO IR
-    ``out`` (.xml + .bin)."""
+    ``windows`` ((K, inputs, S, S, 3) uint8; ``prepare`` maps a batch of them to the
+    graph's input) as ``recipe`` says; write OpenVINO IR ``out`` (.xml + .bin)."""
     ov, nncf = _openvino()
     ov_model = ov.Core().read_model(str(onnx_path))
     ov_model.reshape({ov_model.inputs[0]: list(shape)})
-    data = nncf.Dataset(list(windows), lambda w: w[None])
+    data = nncf.Dataset(list(windows), lambda w: prepare(w[None]))
     nncf_log = logging.getLogger("nncf")  # its handler writes INFO lines to stdout
     level = nncf_log.level
     nncf_log.setLevel(logging.WARNING)
@@ -259,7 +263,8 @@ class Int8Backend(OpenVinoBackend):
             if windows is None:
                 windows = calibration_windows(self.model)
             log.info("int8: quantizing with NNCF on %d simulated windows -> %s", len(windows), xml)
-            quantize(path, self._shape, windows, xml, self.recipe)
+            prepare = lambda images: ring_inputs(self.model.module, images)  # noqa: E731
+            quantize(path, self.input_shape, windows, xml, self.recipe, prepare)
         else:
             log.info("int8: loading cached %s", xml)
         config = {

@@ -1,7 +1,7 @@
 """Inference runtimes: one interface over torch, ONNX Runtime, OpenVINO, CUDA.
 
-Every runtime ("backend") runs the whole :class:`~beadsight.model.FramesToPressure`
-module (input handling included) and has the same numpy interface::
+Every runtime ("backend") runs a :class:`~beadsight.model.FramesToPressure` module
+(input handling included) and has the same numpy interface::
 
     backend.run(images)  # (1, inputs, S, S, 3) uint8 RGB -> (1, S, S) float32 kPa
     # images: a rest-referenced model's rest image first, then the window oldest first
@@ -11,17 +11,20 @@ streaming form used by :class:`~beadsight.inference.predictor.PressurePredictor`
 told how many frames at the end of the window are new since the previous call, so
 runtimes that keep state (frames already normalised, frames already on the GPU) only
 process those. The torch runtimes do so through the module's own steps
-(``normalize_frames``, ``stack``, ``pressure``), so input handling is written once.
+(``normalize_frames``, ``stack``, ``pressure``), so input handling is written once; the
+ONNX Runtime and OpenVINO runtimes built from a checkpoint run its network alone on
+planes computed per frame by the same steps (:mod:`beadsight.inference.planes`).
 
 =========  ===========================================================  ==========
 name       what runs                                                    precisions
 =========  ===========================================================  ==========
 torch      eager PyTorch under ``inference_mode``; keeps a ring of      fp32, bf16
            normalised frames so each frame is normalised once            (autocast)
-onnx       ONNX Runtime, CPU execution provider                          fp32
+onnx       ONNX Runtime, CPU execution provider; streaming keeps a       fp32
+           ring of each frame's input planes
 openvino   OpenVINO on the CPU with an explicit                          fp32, bf16
            ``INFERENCE_PRECISION_HINT``, ``INFERENCE_NUM_THREADS`` and   (bf16 where
-           the LATENCY performance hint                                  the CPU has it)
+           the LATENCY performance hint; the same ring                   the CPU has it)
 cuda       PyTorch on a CUDA device with CUDA graphs (one graph per     fp32, bf16
            ring-buffer position, so only the newest frame is copied in)
 =========  ===========================================================  ==========
@@ -53,12 +56,13 @@ from beadsight.inference.backend import (
     BackendError,
     BackendUnavailableError,
 )
-from beadsight.inference.export_format import model_fingerprint, write_onnx
+from beadsight.inference.export_format import model_fingerprint
 from beadsight.inference.machine import (
     default_threads,
     import_openvino,
     openvino_signal_stack_kept,
 )
+from beadsight.inference.planes import GRAPH_VERSION, PlaneRing, ring_inputs, write_network_onnx
 
 log = logging.getLogger(__name__)
 
@@ -181,21 +185,26 @@ def _open_onnx_session(path: Path, threads: int):
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
-def _onnx_file(model: PressureModel, cache_dir: Path | None) -> tuple[Path, Any]:
-    """An ONNX export of ``model``: cached under ``cache_dir/onnx``, else a temp dir."""
+def _network_file(model: PressureModel, cache_dir: Path | None) -> tuple[Path, Any]:
+    """The model's network on ring-order planes as ONNX (:mod:`beadsight.inference.planes`):
+    cached under ``cache_dir/onnx``, else in a temp dir."""
+    name = f"{model_fingerprint(model)[:24]}-{GRAPH_VERSION}.onnx"
     if cache_dir:
-        path = Path(cache_dir) / "onnx" / f"{model_fingerprint(model)[:24]}.onnx"
+        path = Path(cache_dir) / "onnx" / name
         if not path.is_file():
-            write_onnx(model, path)
+            write_network_onnx(model.module, model.image_size, path)
         return path, None
     tmp = tempfile.TemporaryDirectory(prefix="beadsight-")
-    return write_onnx(model, Path(tmp.name) / "model.onnx"), tmp
+    return write_network_onnx(model.module, model.image_size, Path(tmp.name) / name), tmp
 
 
 class _ModelFileBackend(Backend):
-    """A runtime that runs an ONNX file on the CPU: the checkpoint exported to one
-    (cached under ``cache_dir/onnx``, else in a temp dir removed once loaded), or
-    ``exported_model`` as given. Subclasses load it in :meth:`_load`."""
+    """A runtime that runs an ONNX file on the CPU. Built from the checkpoint, it runs the
+    network alone on float32 planes (cached under ``cache_dir/onnx``, else in a temp dir
+    removed once loaded), and streaming computes each frame's planes once
+    (:class:`~beadsight.inference.planes.PlaneRing`); given ``exported_model``, it runs
+    that file (the whole module: uint8 windows in). Subclasses load the file in
+    :meth:`_load` and run it in :meth:`_infer`."""
 
     def __init__(
         self,
@@ -207,7 +216,13 @@ class _ModelFileBackend(Backend):
     ):
         super().__init__(model, precision)
         self._check_available()
-        path, tmp = (Path(exported_model), None) if exported_model else _onnx_file(model, cache_dir)
+        self.planes = None if exported_model else PlaneRing(model.module, self.image_size)
+        if self.planes is None:
+            path, tmp = Path(exported_model), None
+            self.input_shape = self._shape
+        else:
+            path, tmp = _network_file(model, cache_dir)
+            self.input_shape = (1, self.planes.channels, self.image_size, self.image_size)
         try:
             self._load(path, int(threads or default_threads()), cache_dir)
         finally:
@@ -220,6 +235,23 @@ class _ModelFileBackend(Backend):
 
     def _load(self, path: Path, threads: int, cache_dir: Path | None) -> None:
         raise NotImplementedError
+
+    def _infer(self, inputs: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _run(self, images: np.ndarray) -> np.ndarray:
+        if self.planes is None:
+            return self._infer(images)
+        return self._infer(ring_inputs(self.model.module, images))
+
+    def run_incremental(
+        self, window: np.ndarray, new_frames: int, rest: np.ndarray | None = None
+    ) -> np.ndarray:
+        if self.planes is None:
+            return super().run_incremental(window, new_frames, rest)
+        self._check(window, (1, self.span, *self._shape[2:]))
+        self._check_rest(rest)
+        return self._infer(self.planes.update(window, new_frames, rest))
 
 
 class OnnxBackend(_ModelFileBackend):
@@ -238,8 +270,8 @@ class OnnxBackend(_ModelFileBackend):
         self.session = _open_onnx_session(path, threads)
         self._input = self.session.get_inputs()[0].name
 
-    def _run(self, window: np.ndarray) -> np.ndarray:
-        return self.session.run(None, {self._input: window})[0]
+    def _infer(self, inputs: np.ndarray) -> np.ndarray:
+        return self.session.run(None, {self._input: inputs})[0]
 
     def close(self) -> None:
         self.session = None
@@ -273,7 +305,7 @@ class OpenVinoBackend(_ModelFileBackend):
             if self.precision == "bf16" and not openvino_supports_bf16(core):
                 raise BackendUnavailableError("openvino: this CPU has no native bf16")
             ov_model = core.read_model(str(path))
-            ov_model.reshape({ov_model.inputs[0]: list(self._shape)})
+            ov_model.reshape({ov_model.inputs[0]: list(self.input_shape)})
             config = {
                 "INFERENCE_PRECISION_HINT": "bf16" if self.precision == "bf16" else "f32",
                 "INFERENCE_NUM_THREADS": threads,
@@ -287,8 +319,8 @@ class OpenVinoBackend(_ModelFileBackend):
             self.request = self.compiled.create_infer_request()
             self.config = config
 
-    def _run(self, window: np.ndarray) -> np.ndarray:
-        self.request.infer({0: window}, share_inputs=True, share_outputs=True)
+    def _infer(self, inputs: np.ndarray) -> np.ndarray:
+        self.request.infer({0: inputs}, share_inputs=True, share_outputs=True)
         return self.request.get_output_tensor(0).data.copy()
 
     def close(self) -> None:
