@@ -133,7 +133,7 @@ def test_file_runtimes_stream_through_the_plane_ring(probe_model, strided_model,
         window = stream(model.span, seed=3)[None]
         planes = backend.planes.update(window, model.span)
         assert planes.flags.c_contiguous and np.shares_memory(planes, backend.planes._slots)
-        np.testing.assert_array_equal(planes, ring_inputs(model.module, window))
+        np.testing.assert_allclose(planes, ring_inputs(model.module, window), atol=1e-5, rtol=0)
         backend.close()
 
 
@@ -271,3 +271,18 @@ def test_plane_ring_of_a_rest_referenced_model(fixture, request):
         step = 3 if end == span + 4 else 1
         end += step
     backend.close()
+
+
+def test_plane_ring_refuses_a_module_whose_frame_planes_are_not_affine(probe_model, monkeypatch):
+    """The ring applies the per-channel affine map it reads off the module; a module whose
+    normalisation is not of that form is refused rather than run wrongly."""
+    from beadsight.inference.planes import PlaneRing
+    from beadsight.model import FramesToPressure
+
+    PlaneRing(probe_model.module, probe_model.image_size)  # the shipped steps are affine
+    normalize = FramesToPressure.normalize_frames
+    monkeypatch.setattr(
+        FramesToPressure, "normalize_frames", lambda self, f: normalize(self, f).square()
+    )
+    with pytest.raises(ValueError, match="not affine per colour channel"):
+        PlaneRing(probe_model.module, probe_model.image_size)
