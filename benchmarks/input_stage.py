@@ -1,160 +1,149 @@
-"""The input stage of the network on OpenVINO, measured piece by piece (issue 25, item 2).
+"""The input stage of the file runtimes, streaming, before and after the plane ring (issue 25, item 2).
 
-Target: find what a fused input stage can win at the reference size (256 px, width 16,
-15 frames, random weights). Each variant is exported to ONNX, compiled by OpenVINO
-(fp32, all usable cores, latency hint) and timed in the same run, interleaved, so only
-the ratios between them mean something on a shared machine:
+The runtimes built from a checkpoint run the network alone on float32 planes that each
+frame gets once (:mod:`beadsight.inference.planes`). Before, they ran the whole exported
+module on every call: the uint8 window (with the rest image put in front of it: a copy)
+cast, normalised, transposed and differenced inside the graph. This benchmark streams
+the same frames, one new frame per call and a fixed rest image, through both, calls
+interleaved so that load changes hit both alike (only the ratios mean something on a
+shared machine):
 
-* ``graph``: today's exported model: uint8 NHWC window in, cast, ``(x - mean) / std``
-  and the NHWC -> NCHW transpose inside the graph, then the U-Net;
-* ``folded``: uint8 NHWC in, ``x - mean`` in the graph, the ``1 / std`` folded into the
-  first convolution's weights (exactly equivalent: zero padding of ``x - mean`` scaled
-  is zero padding of the normalised input);
-* ``network``: the U-Net alone on an already normalised float NCHW input: the floor
-  any fused input stage can reach (the input stage's whole cost is graph - network);
+* ``module graph``: the whole module exported to ONNX (what ``beadsight export``
+  writes), fp32, or quantized by the same int8 recipe on the same calibration windows;
+* ``plane ring``: the ``openvino`` / ``int8`` runtime as ``live`` runs it.
 
-and, in numpy, the per-frame cost of building a rest model's input by copying the
-window behind the rest image (``Backend.run_incremental``'s ``np.concatenate``) against
-using the predictor's ring view as it is.
+It also times the ring's work per frame against the module's own torch steps for it.
 
-    .venv/bin/python benchmarks/input_stage.py [--runs 40] [--json]
+    .venv/bin/python benchmarks/input_stage.py [--checkpoint benchmarks/models/reference_size.pt]
+        [--frames 200] [--tiers "openvino fp32" int8] [--json]
 """
 
 from __future__ import annotations
 
 import argparse
-import io
 import json
+import tempfile
 import time
-import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from beadsight.inference.machine import cpu_summary, default_threads
-from beadsight.live.bench import random_model
+from beadsight.checkpoint import load_checkpoint
+from beadsight.inference.export_format import write_onnx
+from beadsight.inference.int8 import FAST, Int8Backend, calibration_windows, quantize
+from beadsight.inference.machine import cpu_summary, default_threads, import_openvino
+from beadsight.inference.runtimes import OpenVinoBackend
+
+REFERENCE = Path(__file__).parent / "models" / "reference_size.pt"
 
 
-class Folded(torch.nn.Module):
-    """uint8 NHWC -> ``x - mean`` in the graph; 1/std folded into the first conv."""
-
-    def __init__(self, module):
-        super().__init__()
-        self.module = module
-        net = module.net
-        conv = net.C1.layer[0]
-        std = module.pixel_std[module.channel_perm]
-        # input channel k = 3 t + c: divide its weights by std[c]
-        scale = (1.0 / std).repeat(conv.weight.shape[1] // 3)
-        with torch.no_grad():
-            conv.weight.mul_(scale[None, :, None, None])
-
-    def forward(self, frames: torch.Tensor) -> torch.Tensor:
-        m = self.module
-        x = frames.index_select(-1, m.channel_perm).to(torch.float32) - m.pixel_mean
-        x = m.seen(x.permute(0, 1, 4, 2, 3)).flatten(1, 2)  # (B, 3T, H, W), not scaled
-        return m.pressure(x)
-
-
-class Network(torch.nn.Module):
-    def __init__(self, module):
-        super().__init__()
-        self.module = module
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.module.pressure(x)
-
-
-def _compile(module: torch.nn.Module, example: torch.Tensor, threads: int):
-    import openvino as ov
-
-    buffer = io.BytesIO()
-    with warnings.catch_warnings(), torch.no_grad():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(module, (example,), buffer, dynamo=False, opset_version=17)
-    core = ov.Core()
-    model = core.read_model(buffer.getvalue())
+def _module_graph(model, threads: int, tmp: Path, int8: bool):
+    """A streaming step on the whole exported module: rest image + window copied per call."""
+    ov = import_openvino()
+    path = write_onnx(model, tmp / "module.onnx")
+    shape = (1, model.inputs, model.image_size, model.image_size, 3)
+    if int8:
+        path = quantize(path, shape, calibration_windows(model), tmp / "module_int8.xml", FAST)
+    graph = ov.Core().read_model(str(path))
+    graph.reshape({graph.inputs[0]: list(shape)})  # batch 1, as the runtimes run it
     config = {
         "INFERENCE_PRECISION_HINT": "f32",
         "INFERENCE_NUM_THREADS": threads,
         "PERFORMANCE_HINT": "LATENCY",
         "NUM_STREAMS": 1,
     }
-    return core.compile_model(model, "CPU", config).create_infer_request()
+    request = ov.Core().compile_model(graph, "CPU", config).create_infer_request()
+
+    def step(window: np.ndarray, rest: np.ndarray | None) -> np.ndarray:
+        images = window if rest is None else np.concatenate([rest[None, None], window], axis=1)
+        request.infer({0: images}, share_inputs=True, share_outputs=True)
+        return request.get_output_tensor(0).data.copy()
+
+    return step
 
 
-def main() -> None:
+def _ms(seconds: list[float]) -> dict[str, float]:
+    a = np.asarray(seconds[20:]) * 1e3
+    return {"p50": round(float(np.median(a)), 2), "p99": round(float(np.percentile(a, 99)), 2)}
+
+
+TIERS = {"openvino fp32": False, "int8": True}  # tier -> quantized
+
+
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--runs", type=int, default=40, help="timed runs per variant")
-    parser.add_argument("--json", action="store_true")
-    args = parser.parse_args()
+    parser.add_argument("--checkpoint", default=str(REFERENCE))
+    parser.add_argument("--frames", type=int, default=200, help="streamed frames per variant")
+    parser.add_argument("--tiers", nargs="+", choices=list(TIERS), default=list(TIERS))
+    parser.add_argument("--json", action="store_true", help="only the JSON line")
+    args = parser.parse_args(argv)
     threads = default_threads()
-    torch.set_num_threads(threads)
-    model = random_model()
-    s, n = model.image_size, model.inputs
+    model = load_checkpoint(args.checkpoint)
     rng = np.random.default_rng(0)
-    window = rng.integers(0, 256, size=(1, n, s, s, 3), dtype=np.uint8)
-    normalised = model.module.normalize(torch.from_numpy(window)).numpy()
-    reference = model.predict(window, batch_size=1)
-    variants = {
-        "graph": (_compile(model.module, torch.from_numpy(window), threads), window),
-        "network": (
-            _compile(Network(model.module), torch.from_numpy(normalised), threads),
-            normalised,
-        ),
-    }
-    folded_model = random_model()  # a copy whose first conv is rescaled
-    variants["folded"] = (
-        _compile(Folded(folded_model.module), torch.from_numpy(window), threads),
-        window,
-    )
-    errors = {}
-    for name, (request, x) in variants.items():
-        got = request.infer({0: x})[0]
-        errors[name] = float(np.abs(got - reference).max() / max(np.abs(reference).max(), 1e-9))
-    times = {name: [] for name in variants}
-    for _ in range(3):  # warm-up
-        for request, x in variants.values():
-            request.infer({0: x}, share_inputs=True)
-    for _ in range(args.runs):  # interleaved: load changes hit every variant alike
-        for name, (request, x) in variants.items():
-            t = time.perf_counter()
-            request.infer({0: x}, share_inputs=True)
-            times[name].append(time.perf_counter() - t)
-    rest = window[0, 0]
-    ring = np.zeros((1, 2 * (n - 1), s, s, 3), np.uint8)
-    copy_s, view_s = [], []
-    for k in range(200):
-        view = ring[:, k % (n - 1) : k % (n - 1) + n - 1]
-        t = time.perf_counter()
-        np.concatenate([rest[None, None], view], axis=1)
-        copy_s.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        np.ascontiguousarray(view)
-        view_s.append(time.perf_counter() - t)
-    p50 = {k: float(np.median(v) * 1e3) for k, v in times.items()}
-    result = {
-        "cpu": cpu_summary(),
-        "model": "reference size: 256 px, width 16, 15 frames (random weights)",
-        "runs": args.runs,
-        "p50_ms": p50,
-        "input_stage_ms": p50["graph"] - p50["network"],
-        "input_stage_share": (p50["graph"] - p50["network"]) / p50["graph"],
-        "folded_vs_graph": p50["folded"] / p50["graph"],
-        "max_rel_err_vs_torch": errors,
-        "window_copy_ms_p50": float(np.median(copy_s) * 1e3),
-        "ring_view_ms_p50": float(np.median(view_s) * 1e3),
-    }
+    s, span = model.image_size, model.span
+    frames = rng.integers(0, 256, size=(span + args.frames + 20, s, s, 3), dtype=np.uint8)
+    rest = rng.integers(0, 256, size=(s, s, 3), dtype=np.uint8) if model.rest else None
+    result: dict = {"cpu": cpu_summary(), "checkpoint": args.checkpoint, "threads": threads}
+    with tempfile.TemporaryDirectory() as tmp:
+        for tier in args.tiers:
+            int8 = TIERS[tier]
+            before = _module_graph(model, threads, Path(tmp), int8)
+            if int8:
+                after = Int8Backend(model, threads=threads, recipe=FAST)
+            else:
+                after = OpenVinoBackend(model, "fp32", threads=threads)
+            times: dict[str, list[float]] = {"module graph": [], "plane ring": []}
+            diff = 0.0  # the two outputs' largest difference (int8: two quantizations)
+            for end in range(span - 1, len(frames)):
+                window = frames[None, end - span + 1 : end + 1]
+                new = span if end == span - 1 else 1
+                t0 = time.perf_counter()
+                a = before(window, rest)
+                t1 = time.perf_counter()
+                b = after.run_incremental(window, new, rest)
+                t2 = time.perf_counter()
+                diff = max(diff, float(np.abs(a - b).max()))
+                times["module graph"].append(t1 - t0)
+                times["plane ring"].append(t2 - t1)
+            row = {name: _ms(v) for name, v in times.items()}
+            row["speedup_p50"] = round(row["module graph"]["p50"] / row["plane ring"]["p50"], 3)
+            row["max_abs_diff_kpa"] = diff
+            result[tier] = row
+            after.close()
+    ring = OpenVinoBackend(model, "fp32", threads=threads).planes
+    window = frames[None, :span]
+    ring.update(window, span, rest)
+    per_frame: dict[str, list[float]] = {"ring (numpy)": [], "module steps (torch)": []}
+    module = model.module
+    with torch.inference_mode():
+        rest_x = (
+            None if rest is None else module.normalize_frames(torch.from_numpy(rest)[None, None])
+        )
+    for k in range(min(120, len(frames) - span)):
+        t0 = time.perf_counter()
+        ring.update(frames[None, k + 1 : k + 1 + span], 1, rest)
+        t1 = time.perf_counter()
+        with torch.inference_mode():  # what the ring does, by the module's steps
+            x = module.normalize_frames(torch.from_numpy(frames[k + span])[None, None])
+            if rest_x is not None:
+                x = module.rest_terms(rest_x, x)[1]
+            x.numpy().copy()
+        t2 = time.perf_counter()
+        per_frame["ring (numpy)"].append(t1 - t0)
+        per_frame["module steps (torch)"].append(t2 - t1)
+    result["per_frame_ms"] = {name: _ms(v)["p50"] for name, v in per_frame.items()}
     if not args.json:
         print(result["cpu"])
-        for name, ms in p50.items():
-            print(f"  {name:8s} p50 {ms:7.2f} ms   max error {100 * errors[name]:.2g} % of peak")
-        print(
-            f"  input stage {result['input_stage_ms']:.2f} ms "
-            f"({100 * result['input_stage_share']:.1f} %), folded/graph "
-            f"{result['folded_vs_graph']:.3f}, rest+window copy "
-            f"{result['window_copy_ms_p50']:.2f} ms per frame"
-        )
+        for tier in args.tiers:
+            r = result[tier]
+            print(
+                f"  {tier:13s} module graph p50 {r['module graph']['p50']:6.2f} p99 "
+                f"{r['module graph']['p99']:6.2f} ms | plane ring p50 {r['plane ring']['p50']:6.2f}"
+                f" p99 {r['plane ring']['p99']:6.2f} ms | {r['speedup_p50']:.3f}x | outputs "
+                f"differ by <= {r['max_abs_diff_kpa']:.2g} kPa"
+            )
+        print(f"  per frame: {result['per_frame_ms']}")
     print(json.dumps(result))
 
 

@@ -1,6 +1,7 @@
 """The figures of benchmarks/live_response.py and benchmarks/steady_press.py, on made-up
 readings whose answers are known; benchmarks/live_offline.py end to end on a tiny
-simulated dataset; benchmarks/live_rest.py on the simulator's first press."""
+simulated dataset; benchmarks/live_rest.py on the simulator's first press;
+benchmarks/input_stage.py on a small rest-referenced model."""
 
 from __future__ import annotations
 
@@ -177,3 +178,15 @@ def test_steady_press_refuses_a_ramp_feed_that_is_not_a_feed(capsys):
     with pytest.raises(SystemExit):  # a usage error naming the option, not a traceback
         benchmark("steady_press").main(["--ramp-feed", "0", "--hold-s", "1"])
     assert "--ramp-feed must be a feed > 0 mm/min, got 0.0" in capsys.readouterr().err
+
+
+def test_input_stage_streams_both_graphs_alike(rest_model, tmp_path, capsys):
+    """The module graph and the plane ring, streamed on the same frames, give the same
+    maps (fp32), and the figures come out as one JSON line."""
+    checkpoint = rest_model.save(tmp_path / "rest.pt")
+    argv = ["--checkpoint", str(checkpoint), "--frames", "30", "--tiers", "openvino fp32"]
+    benchmark("input_stage").main([*argv, "--json"])
+    figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    row = figures["openvino fp32"]
+    assert row["max_abs_diff_kpa"] < 1e-3 and row["speedup_p50"] > 0
+    assert set(figures["per_frame_ms"]) == {"ring (numpy)", "module steps (torch)"}

@@ -51,6 +51,7 @@ from beadsight.inference.parity import (
     probe_windows,
     require_parity,
 )
+from beadsight.inference.planes import GRAPH_VERSION
 from beadsight.inference.runtimes import (
     BACKENDS,
     PRECISIONS,
@@ -112,14 +113,19 @@ def auto_candidates(precision: str = "auto", device: Any = None) -> list[tuple[s
     return order
 
 
-def time_backend(backend: Backend, window: np.ndarray, runs: int = AUTO_TIMED_RUNS) -> float:
-    """Median seconds per ``backend.run(window)`` after :data:`AUTO_WARMUP_RUNS` warm-ups."""
+def time_backend(backend: Backend, images: np.ndarray, runs: int = AUTO_TIMED_RUNS) -> float:
+    """Median seconds per streaming step (one new frame, as live sensing calls it) on
+    ``images`` ((1, inputs, S, S, 3), as ``run`` takes them), after
+    :data:`AUTO_WARMUP_RUNS` warm-ups."""
+    rest = images[0, 0] if backend.rest else None
+    window = np.ascontiguousarray(images[:, backend.rest :])
+    backend.run_incremental(window, backend.span, rest)
     for _ in range(AUTO_WARMUP_RUNS):
-        backend.run(window)
+        backend.run_incremental(window, 1, rest)
     times = []
     for _ in range(runs):
         start = time.perf_counter()
-        backend.run(window)
+        backend.run_incremental(window, 1, rest)
         times.append(time.perf_counter() - start)
     return float(np.median(times))
 
@@ -152,7 +158,7 @@ def build_backend(
 
 # --- the choice cache ---------------------------------------------------------------
 def _choice_key(model: PressureModel, precision: str, device: Any) -> str:
-    return f"{model_fingerprint(model)[:24]}|{machine_key()}|{precision}|{device}"
+    return f"{model_fingerprint(model)[:24]}|{machine_key()}|{precision}|{device}|{GRAPH_VERSION}"
 
 
 def _read_choices(cache_dir: Path | None) -> dict[str, Any]:
