@@ -216,13 +216,13 @@ class _ModelFileBackend(Backend):
     ):
         super().__init__(model, precision)
         self._check_available()
-        self.planes = None if exported_model else PlaneRing(model.module, self.image_size)
-        if self.planes is None:
+        if exported_model:
+            self.planes, self.input_shape = None, self._shape
             path, tmp = Path(exported_model), None
-            self.input_shape = self._shape
         else:
-            path, tmp = _network_file(model, cache_dir)
+            self.planes = PlaneRing(model.module, self.image_size)
             self.input_shape = (1, self.planes.channels, self.image_size, self.image_size)
+            path, tmp = _network_file(model, cache_dir)
         try:
             self._load(path, int(threads or default_threads()), cache_dir)
         finally:
