@@ -18,12 +18,15 @@ import pytest
 from beadsight.assets import shipped_model_path
 from beadsight.checkpoint import load_checkpoint
 from beadsight.data.rest import REST_FRAMES, average_rest, rest_ends
+from beadsight.errors import ConfigError
 from beadsight.inference.int8 import (
     ACCURATE,
     FAST,
+    FASTEST,
     NNCF_DEFAULT,
     RECIPES,
     Int8Backend,
+    QuantizationRecipe,
     calibration_windows,
     gated_int8,
 )
@@ -172,18 +175,24 @@ def test_fp32_blocks_are_whole_only_when_asked(sim_model, tmp_path):
 
     accurate = Int8Backend(sim_model, cache_dir=tmp_path, recipe=ACCURATE)
     fast = Int8Backend(sim_model, cache_dir=tmp_path, recipe=FAST)
+    fastest = Int8Backend(sim_model, cache_dir=tmp_path, recipe=FASTEST)
     try:
         assert FAST.whole_blocks and "C9" not in FAST.fp32_blocks
-        norms = {b: len(_quantized_inputs(b.quantized_path, {"MVN"})) for b in (accurate, fast)}
+        made = (accurate, fast, fastest)
+        norms = {b: len(_quantized_inputs(b.quantized_path, {"MVN"})) for b in made}
         # the shipped model has 7 conv blocks of 2 norms: ACCURATE quantizes all 14 norms'
-        # inputs (C1's and C9's too); FAST keeps C1's 2 in fp32
-        assert norms == {accurate: 14, fast: 12}
+        # inputs (C1's and C9's too); FAST and FASTEST keep C1's 2 in fp32
+        assert norms == {accurate: 14, fast: 12, fastest: 12}
         assert block_convs(accurate, "C1") == block_convs(fast, "C1") == []
+        # FASTEST: C1's first conv reads quantized input planes; its second conv does not
+        assert block_convs(fastest, "C1") == ["/net/C1/layer/layer.0/Conv/WithoutBiases"]
         # (C9's first conv reads a Concat of quantized tensors)
         assert block_convs(accurate, "C9") == [] and block_convs(fast, "C9") != []
+        with pytest.raises(ConfigError, match="first_conv_int8 applies to blocks kept whole"):
+            QuantizationRecipe(first_conv_int8=True)
     finally:
-        accurate.close()
-        fast.close()
+        for backend in made:
+            backend.close()
 
 
 def test_the_gate_runs_the_first_recipe_that_keeps_the_metrics_and_keeps_verdicts(
