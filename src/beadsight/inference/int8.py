@@ -25,8 +25,12 @@ within the gate. Much of that error was the quantizers NNCF still put on ``C1``'
 (``whole_blocks``): quantizing the last conv block too, with the first block kept
 whole (:data:`FAST`, about 1.1x :data:`ACCURATE` at the reference size), keeps the
 reference-size model within the gate (every metric within 1 % on two sets of held-out
-presses; before the further training too) but not the shipped model (CoP +6 %). So the
-gated runtime tries :data:`RECIPES` fastest first and runs the first that passes.
+presses; before the further training too) but not the shipped model (CoP +6 %).
+:data:`FASTEST` quantizes ``C1``'s first convolution too (its input planes, each frame's
+change from the rest image, at about two pixel levels a step), 1.15x :data:`FAST` at the
+reference size with the same metric changes there, a 30 s held press read as fp32
+reads it. So the gated runtime tries :data:`RECIPES` fastest first and runs the first
+that passes.
 
 Whether the result may be used is decided on the paper's metrics, not pixel by pixel:
 :func:`beadsight.inference.metric_parity.metric_parity` (the ``int8`` runtime and auto
