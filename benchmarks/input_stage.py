@@ -30,37 +30,25 @@ import numpy as np
 import torch
 
 from beadsight.checkpoint import load_checkpoint
+from beadsight.errors import BeadSightError
 from beadsight.inference.export_format import write_onnx
 from beadsight.inference.int8 import FAST, Int8Backend, calibration_windows, quantize
-from beadsight.inference.machine import cpu_summary, default_threads, import_openvino
+from beadsight.inference.machine import cpu_summary, default_threads
+from beadsight.inference.planes import PlaneRing
 from beadsight.inference.runtimes import OpenVinoBackend
 
 REFERENCE = Path(__file__).parent / "models" / "reference_size.pt"
 
 
-def _module_graph(model, threads: int, tmp: Path, int8: bool):
-    """A streaming step on the whole exported module: rest image + window copied per call."""
-    ov = import_openvino()
+def _module_graph(model, threads: int, tmp: Path, int8: bool) -> OpenVinoBackend:
+    """The OpenVINO runtime on the whole exported module (as it runs a file made by
+    ``beadsight export``: the rest image copied in front of the window per call), fp32 or
+    quantized by ``FAST`` on the same calibration windows as the int8 runtime."""
     path = write_onnx(model, tmp / "module.onnx")
-    shape = (1, model.inputs, model.image_size, model.image_size, 3)
     if int8:
+        shape = (1, model.inputs, model.image_size, model.image_size, 3)
         path = quantize(path, shape, calibration_windows(model), tmp / "module_int8.xml", FAST)
-    graph = ov.Core().read_model(str(path))
-    graph.reshape({graph.inputs[0]: list(shape)})  # batch 1, as the runtimes run it
-    config = {
-        "INFERENCE_PRECISION_HINT": "f32",
-        "INFERENCE_NUM_THREADS": threads,
-        "PERFORMANCE_HINT": "LATENCY",
-        "NUM_STREAMS": 1,
-    }
-    request = ov.Core().compile_model(graph, "CPU", config).create_infer_request()
-
-    def step(window: np.ndarray, rest: np.ndarray | None) -> np.ndarray:
-        images = window if rest is None else np.concatenate([rest[None, None], window], axis=1)
-        request.infer({0: images}, share_inputs=True, share_outputs=True)
-        return request.get_output_tensor(0).data.copy()
-
-    return step
+    return OpenVinoBackend(model, "fp32", exported_model=path, threads=threads)
 
 
 def _ms(seconds: list[float]) -> dict[str, float]:
@@ -78,8 +66,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tiers", nargs="+", choices=list(TIERS), default=list(TIERS))
     parser.add_argument("--json", action="store_true", help="only the JSON line")
     args = parser.parse_args(argv)
+    if args.frames < 1:
+        parser.error(f"--frames must be >= 1, got {args.frames}")
     threads = default_threads()
-    model = load_checkpoint(args.checkpoint)
+    try:
+        model = load_checkpoint(args.checkpoint)
+    except BeadSightError as error:  # a missing or foreign checkpoint
+        parser.error(str(error))
     rng = np.random.default_rng(0)
     s, span = model.image_size, model.span
     frames = rng.integers(0, 256, size=(span + args.frames + 20, s, s, 3), dtype=np.uint8)
@@ -99,7 +92,7 @@ def main(argv: list[str] | None = None) -> None:
                 window = frames[None, end - span + 1 : end + 1]
                 new = span if end == span - 1 else 1
                 t0 = time.perf_counter()
-                a = before(window, rest)
+                a = before.run_incremental(window, new, rest)
                 t1 = time.perf_counter()
                 b = after.run_incremental(window, new, rest)
                 t2 = time.perf_counter()
@@ -110,8 +103,9 @@ def main(argv: list[str] | None = None) -> None:
             row["speedup_p50"] = round(row["module graph"]["p50"] / row["plane ring"]["p50"], 3)
             row["max_abs_diff_kpa"] = diff
             result[tier] = row
+            before.close()
             after.close()
-    ring = OpenVinoBackend(model, "fp32", threads=threads).planes
+    ring = PlaneRing(model.module, model.image_size)
     window = frames[None, :span]
     ring.update(window, span, rest)
     per_frame: dict[str, list[float]] = {"ring (numpy)": [], "module steps (torch)": []}

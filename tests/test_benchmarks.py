@@ -190,3 +190,6 @@ def test_input_stage_streams_both_graphs_alike(rest_model, tmp_path, capsys):
     row = figures["openvino fp32"]
     assert row["max_abs_diff_kpa"] < 1e-3 and row["speedup_p50"] > 0
     assert set(figures["per_frame_ms"]) == {"ring (numpy)", "module steps (torch)"}
+    with pytest.raises(SystemExit):  # the command line: a usage error, not a traceback
+        benchmark("input_stage").main(["--checkpoint", str(tmp_path / "missing.pt")])
+    assert "missing.pt: checkpoint file not found" in capsys.readouterr().err
