@@ -6,6 +6,10 @@
 #
 #   scripts/train_rest_models.sh full OUT [DEADLINE_S] [SET]   # on the GPU machine
 #   scripts/train_rest_models.sh tiny OUT [DEADLINE_S] [SET]   # a few-minute check on a CPU
+#   scripts/train_rest_models.sh cpu OUT [DEADLINE_S] [SET]    # hours in the background on a
+#       2-core CPU with no GPU: one model (set base), one core training it, the other
+#       simulating; continue a later session's run from this one's last round with
+#       BASE_INIT=OUT/base_rN/final.pt (RESULTS=DIR writes it)
 #
 # Sets of models (each round starts from the round before; round 1 from the model's init):
 #   rest (default): the candidates for the shipped models
@@ -21,18 +25,20 @@
 #     norm_wip  contrast-normalised, from BASE_INIT (the shipped base_model.pt came from this
 #               model of the set's first run; base_model.md has that run's figures)
 # Every exact command is echoed into OUT/commands.txt. The last round's folders OUT/NAME_rN
-# continue with `beadsight train --out RUN --resume --budget-min M`. With RESULTS=DIR, each
+# continue with `beadsight train --out RUN --resume --budget-min M`. SEED_OFFSET=N moves the
+# simulation seeds (2600+k, 2700+k) by N, for presses no earlier run trained on. With RESULTS=DIR, each
 # round's checkpoints are also copied there as soon as the round ends: NAME.tar holds best.pt
 # and final.pt (the last step's weights, without the optimizer state: continue it with
 # --init), beside logs.tgz.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-size=${1:?tiny or full}
+size=${1:?tiny, cpu or full}
 out=${2:?output folder}
 deadline_s=${3:-480}
 set_name=${4:-rest}
 sim_init=${SIM_INIT:-src/beadsight/assets/sim_model.pt}
 base_init=${BASE_INIT:-src/beadsight/assets/base_model.pt}
+seed_offset=${SEED_OFFSET:-0}
 start=$(date +%s)
 mkdir -p "$out"
 PY=${PYTHON:-python3}
@@ -54,15 +60,21 @@ case $set_name in
     "norm base - 1e-3 --rest-input --rest-norm --width 16 --frames 4 --frame-stride 2 --color-jitter 1"
     "norm_nj base - 1e-3 --rest-input --rest-norm --width 16 --frames 4 --frame-stride 2"
     "norm_wip base $base_init 5e-4 --rest-norm --color-jitter 1") ;;
-  *) echo "set must be rest or looks, got $set_name" >&2; exit 2 ;;
+  base) models=("base base $base_init 2e-4 --color-jitter 1") ;;
+  *) echo "set must be rest, looks or base, got $set_name" >&2; exit 2 ;;
 esac
 names=(); for m in "${models[@]}"; do names+=("${m%% *}"); done
 need_sim=0; for m in "${models[@]}"; do read -r _ d _ <<<"$m"; [ "$d" = sim ] && need_sim=1; done
 
+val_min=0.5
 if [ "$size" = full ]; then
   round_s=110; first=(100 10 180 90 5 11); each=(170 10 320 160 4 9)
   device=cuda; precision=bf16; batch=128; train_args=(--loader device)
   [ $need_sim = 0 ] && first=(0 0 240 120 0 16) && each=(0 0 300 150 0 12)
+elif [ "$size" = cpu ]; then
+  round_s=1500; first=(100 20 200 100 1 1); each=(100 20 200 100 1 1)
+  device=cpu; precision=fp32; batch=64; train_args=(--loader device --threads 1); val_min=5
+  [ $need_sim = 0 ] && first=(0 0 200 100 0 2) && each=(0 0 200 100 0 1)
 else
   round_s=45; first=(3 1 3 2 1 1); each=(3 1 3 2 1 1)
   device=cpu; precision=fp32; batch=8; train_args=(--loader device --threads 1)
@@ -74,10 +86,10 @@ simulate() {
   local k=$1 opts=(--image-size 64 --profile mixed --no-progress)
   if [ "$2" -gt 0 ]; then
     run $PY -m beadsight simulate --out "$out/sim_d$k.h5" --presses "$2" --pouches "$3" \
-      --seed $((2600 + k)) --workers "$6" "${opts[@]}" >"$out/simulate_sim_d$k.log" 2>&1 &
+      --seed $((2600 + seed_offset + k)) --workers "$6" "${opts[@]}" >"$out/simulate_sim_d$k.log" 2>&1 &
   fi
   run $PY -m beadsight simulate --out "$out/base_d$k.h5" --presses "$4" --pouches "$5" \
-    --variety train --looks train --seed $((2700 + k)) --workers "$7" "${opts[@]}" \
+    --variety train --looks train --seed $((2700 + seed_offset + k)) --workers "$7" "${opts[@]}" \
     >"$out/simulate_base_d$k.log" 2>&1 &
   wait
   for f in sim base; do
@@ -94,7 +106,7 @@ train() {
   run $PY -m beadsight train --data "$out/${data}_d$((k - 1)).h5" --out "$out/${m}_r$k" \
     --dropout 0 --batch-size $batch --lr "$lr" --lr-schedule cosine --split 0.95 0.05 0 \
     --seed "$k" --device $device --precision $precision --budget-min "$budget" \
-    --val-every-min 0.5 --checkpoint-every-min 0.5 --val-stride 4 --no-progress \
+    --val-every-min $val_min --checkpoint-every-min $val_min --val-stride 4 --no-progress \
     "${train_args[@]}" "$@" >"$out/train_${m}_r$k.log" 2>&1
 }
 
