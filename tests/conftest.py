@@ -174,6 +174,20 @@ def make_rest_model(rest_norm: bool = False) -> PressureModel:
     return untrained_model(shape, seed=1)
 
 
+@pytest.fixture(scope="session")
+def shared_cache(tmp_path_factory) -> Path:
+    """A backend cache folder shared by every worker of this test run (not across runs), for
+    tests whose subject is not quantizing or caching: the shipped model's int8 recipes and
+    their gate verdicts are then made once per run, not once per test. Its writes are
+    atomic (the int8 IR's weights before its graph), so workers that make the same file at
+    once each read a whole one."""
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if "PYTEST_XDIST_WORKER" in os.environ else base
+    folder = root / "shared-backend-cache"
+    folder.mkdir(exist_ok=True)
+    return folder
+
+
 @pytest.fixture
 def full_disk(tmp_path: Path):
     """A real small disk (tmpfs, 256 KiB) that fills up; skips where it cannot be mounted.

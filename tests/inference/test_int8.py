@@ -67,9 +67,9 @@ def reference(sim_model, heldout):
 
 
 @pytest.fixture(scope="module")
-def int8_backend(sim_model, tmp_path_factory):
+def int8_backend(sim_model, shared_cache):
     """The default recipe's int8 runtime of the shipped model (not gated)."""
-    backend = Int8Backend(sim_model, cache_dir=tmp_path_factory.mktemp("int8-cache"))
+    backend = Int8Backend(sim_model, cache_dir=shared_cache)
     yield backend
     backend.close()
 
@@ -125,8 +125,8 @@ def test_an_untrained_model_cannot_pass_the_metric_gate(probe_model, tmp_path):
     assert not parity.meaningful and not parity.ok  # ... but the metrics cannot tell
 
 
-def test_int8_that_moves_the_metrics_is_refused(sim_model, heldout, reference, tmp_path):
-    coarse = Int8Backend(sim_model, cache_dir=tmp_path, recipe=NNCF_DEFAULT)
+def test_int8_that_moves_the_metrics_is_refused(sim_model, heldout, reference, shared_cache):
+    coarse = Int8Backend(sim_model, cache_dir=shared_cache, recipe=NNCF_DEFAULT)
     parity = metric_parity(coarse, sim_model, heldout, reference=reference)
     assert parity.meaningful and not parity.ok
     assert parity.deltas["mae_kpa"] > 0.1  # measured: +18 % (force error +31 %)
@@ -166,16 +166,16 @@ def _quantized_inputs(xml_path, types):
     )
 
 
-def test_fp32_blocks_are_whole_only_when_asked(sim_model, tmp_path):
+def test_fp32_blocks_are_whole_only_when_asked(sim_model, shared_cache):
     # OpenVINO names a block's instance norms apart from it (MVN_1234), so a block kept in
     # fp32 by name still has its norms' inputs quantized; whole_blocks keeps them too.
     def block_convs(backend, block):
         convs = _quantized_inputs(backend.quantized_path, {"Convolution"})
         return [c for c in convs if f"/net/{block}/" in c]
 
-    accurate = Int8Backend(sim_model, cache_dir=tmp_path, recipe=ACCURATE)
-    fast = Int8Backend(sim_model, cache_dir=tmp_path, recipe=FAST)
-    fastest = Int8Backend(sim_model, cache_dir=tmp_path, recipe=FASTEST)
+    accurate = Int8Backend(sim_model, cache_dir=shared_cache, recipe=ACCURATE)
+    fast = Int8Backend(sim_model, cache_dir=shared_cache, recipe=FAST)
+    fastest = Int8Backend(sim_model, cache_dir=shared_cache, recipe=FASTEST)
     try:
         assert FAST.whole_blocks and "C9" not in FAST.fp32_blocks
         made = (accurate, fast, fastest)

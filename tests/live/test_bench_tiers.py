@@ -10,10 +10,10 @@ from beadsight.inference.int8 import ACCURATE
 from beadsight.live.tiers import bench_tiers, tiers_summary
 
 
-def test_tiers_report_rate_latency_speedup_and_metric_deltas(tmp_path):
+def test_tiers_report_rate_latency_speedup_and_metric_deltas(shared_cache):
     model = load_checkpoint(shipped_model_path())
     # 20 frames: over a dozen readings per tier, enough for a rate and p50/p99
-    result = bench_tiers({"shipped": model}, frames=20, cache_dir=tmp_path, threads=None)
+    result = bench_tiers({"shipped": model}, frames=20, cache_dir=shared_cache, threads=None)
     json.dumps(result, allow_nan=False)  # strict JSON: --json prints it
     assert result["cpu"].startswith("CPU: ") and isinstance(result["flags"], list)
     rows = result["shipped"]["tiers"]
