@@ -18,6 +18,7 @@ import pytest
 from beadsight.assets import shipped_model_path
 from beadsight.checkpoint import load_checkpoint
 from beadsight.data.rest import REST_FRAMES, average_rest, rest_ends
+from beadsight.data.windows import stream_windows
 from beadsight.errors import ConfigError
 from beadsight.inference.int8 import (
     ACCURATE,
@@ -166,6 +167,50 @@ def _quantized_inputs(xml_path, types):
     )
 
 
+def _reads_uint8_planes(xml_path) -> list[str]:
+    """The nodes that read an OpenVINO IR's input as uint8 planes dequantized
+    (Parameter u8 -> Convert -> Subtract -> Multiply -> them); [] for a float input."""
+    model = import_openvino().Core().read_model(str(xml_path))
+    (param,) = model.get_parameters()
+    if param.get_element_type().get_type_name() != "u8":
+        return []
+    node = param
+    for kind in ("Convert", "Subtract", "Multiply"):
+        (target,) = node.output(0).get_target_inputs()
+        node = target.get_node()
+        assert node.get_type_name() == kind
+    return sorted(t.get_node().get_friendly_name() for t in node.output(0).get_target_inputs())
+
+
+def test_fastest_ring_keeps_each_frame_quantized_and_streams_as_it_runs(
+    sim_model, heldout, shared_cache
+):
+    """FASTEST's graph takes uint8 planes: the ring quantizes each frame's once, and a
+    stream (one new frame per call) reads what a stateless run of the same windows reads,
+    exactly (both quantize the same planes the same way)."""
+    backend = Int8Backend(sim_model, cache_dir=shared_cache, recipe=FASTEST)
+    try:
+        quantizer = backend.planes.quantizer
+        assert quantizer is not None and 0 < quantizer.zero_point < 255
+        k = int(np.argmax(heldout.force_n))  # the hardest press's window
+        end, span = int(heldout.ends[k]), sim_model.span
+        rest = heldout.rests[heldout.rest_of[k]]
+        frames = heldout.frames
+        backend.run_incremental(frames[None, end - span - 5 : end - 5], span, rest)
+        peaks = []
+        for e in range(end - 5, end + 1):
+            window = frames[None, e - span + 1 : e + 1]
+            view = backend.planes.update(window, 0, rest)
+            assert view.dtype == np.uint8 and view.shape[1] == backend.planes.channels
+            got = backend.run_incremental(window, 1, rest)[0]
+            want = backend.run_batch(stream_windows(frames, np.array([e]), span, rest[None]))[0]
+            np.testing.assert_array_equal(got, want)
+            peaks.append(got.max())
+        assert min(peaks) > 20  # a press, not an empty map
+    finally:
+        backend.close()
+
+
 def test_fp32_blocks_are_whole_only_when_asked(sim_model, shared_cache):
     # OpenVINO names a block's instance norms apart from it (MVN_1234), so a block kept in
     # fp32 by name still has its norms' inputs quantized; whole_blocks keeps them too.
@@ -184,8 +229,14 @@ def test_fp32_blocks_are_whole_only_when_asked(sim_model, shared_cache):
         # inputs (C1's and C9's too); FAST and FASTEST keep C1's 2 in fp32
         assert norms == {accurate: 14, fast: 12, fastest: 12}
         assert block_convs(accurate, "C1") == block_convs(fast, "C1") == []
-        # FASTEST: C1's first conv reads quantized input planes; its second conv does not
-        assert block_convs(fastest, "C1") == ["/net/C1/layer/layer.0/Conv/WithoutBiases"]
+        # FASTEST: C1's first conv reads the input planes quantized (the graph takes them
+        # as uint8: test below); its second conv does not
+        assert block_convs(fastest, "C1") == []
+        assert _reads_uint8_planes(fastest.quantized_path) == [
+            "/net/C1/layer/layer.0/Conv/WithoutBiases"
+        ]
+        assert _reads_uint8_planes(accurate.quantized_path) == []
+        assert _reads_uint8_planes(fast.quantized_path) == []
         # (C9's first conv reads a Concat of quantized tensors)
         assert block_convs(accurate, "C9") == [] and block_convs(fast, "C9") != []
         with pytest.raises(ConfigError, match="first_conv_int8 applies to blocks kept whole"):

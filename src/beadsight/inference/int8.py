@@ -29,7 +29,8 @@ presses; before the further training too) but not the shipped model (CoP +6 %).
 :data:`FASTEST` quantizes ``C1``'s first convolution too (its input planes, each frame's
 change from the rest image, at about two pixel levels a step), 1.15x :data:`FAST` at the
 reference size with the same metric changes there, a 30 s held press read as fp32
-reads it. So the gated runtime tries :data:`RECIPES` fastest first and runs the first
+reads it; its graph takes the planes as uint8, quantized once per frame by the ring
+(:func:`_take_uint8_planes`). So the gated runtime tries :data:`RECIPES` fastest first and runs the first
 that passes.
 
 Whether the result may be used is decided on the paper's metrics, not pixel by pixel:
@@ -74,7 +75,7 @@ from beadsight.inference.metric_parity import (
     require_metric_parity,
     simulated_presses,
 )
-from beadsight.inference.planes import GRAPH_VERSION, ring_inputs
+from beadsight.inference.planes import GRAPH_VERSION, PlaneQuantizer, PlaneRing, ring_inputs
 from beadsight.inference.runtimes import OpenVinoBackend
 
 log = logging.getLogger(__name__)
@@ -232,6 +233,7 @@ def quantize(
             )
     finally:
         nncf_log.setLevel(level)
+    quantized = _take_uint8_planes(ov, quantized)
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=".beadsight-") as tmp:
         staged = Path(tmp) / "model.xml"
@@ -239,6 +241,58 @@ def quantize(
         for src, dst in ((staged.with_suffix(".bin"), out.with_suffix(".bin")), (staged, out)):
             atomic_write(dst, lambda f, src=src: f.write(src.read_bytes()))
     return out
+
+
+def _constant(node) -> float | None:
+    """A scalar Constant node's value, else None."""
+    if node.get_type_name() != "Constant":
+        return None
+    data = np.asarray(node.get_data())
+    return float(data.ravel()[0]) if data.size == 1 else None
+
+
+def _take_uint8_planes(ov, model):
+    """When the graph's first step quantizes its input planes (one per-tensor
+    FakeQuantize of 256 levels, the same range in and out, an integral zero point), the
+    graph that takes them quantized: a uint8 input read as ``(q - zero_point) * scale``,
+    which OpenVINO's CPU plugin runs as the same int8 convolution (bit-identical maps on
+    the reference-size model), while the ring quantizes each frame once
+    (:class:`~beadsight.inference.planes.PlaneQuantizer`). Else the graph unchanged."""
+    (param,) = model.get_parameters()
+    users = [t.get_node() for t in param.output(0).get_target_inputs()]
+    if len(users) != 1 or users[0].get_type_name() != "FakeQuantize":
+        return model
+    fq = users[0]
+    lo, hi, out_lo, out_hi = (
+        _constant(fq.input(i).get_source_output().get_node()) for i in (1, 2, 3, 4)
+    )
+    if None in (lo, hi) or (lo, hi) != (out_lo, out_hi) or fq.get_levels() != 256 or hi <= lo:
+        return model
+    scale = (hi - lo) / 255
+    zero_point = -lo / scale
+    if abs(zero_point - round(zero_point)) > 1e-3 or not 0 <= round(zero_point) <= 255:
+        return model
+    ops = ov.opset13
+    planes = ops.parameter(param.get_output_partial_shape(0), ov.Type.u8, name="planes")
+    shifted = ops.subtract(ops.convert(planes, ov.Type.f32), np.float32(round(zero_point)))
+    dequantized = ops.multiply(shifted, np.float32(scale))
+    for target in list(fq.output(0).get_target_inputs()):
+        target.replace_source_output(dequantized.output(0))
+    return ov.Model(model.get_results(), [planes], model.get_friendly_name())
+
+
+def _input_quantizer(model) -> PlaneQuantizer | None:
+    """The quantizer of a graph made by :func:`_take_uint8_planes` (None for one that
+    takes float32 planes)."""
+    (param,) = model.get_parameters()
+    if param.get_element_type().get_type_name() != "u8":
+        return None
+    (convert,) = [t.get_node() for t in param.output(0).get_target_inputs()]
+    (subtract,) = [t.get_node() for t in convert.output(0).get_target_inputs()]
+    (multiply,) = [t.get_node() for t in subtract.output(0).get_target_inputs()]
+    zero_point = _constant(subtract.input(1).get_source_output().get_node())
+    scale = _constant(multiply.input(1).get_source_output().get_node())
+    return PlaneQuantizer(int(zero_point), scale)
 
 
 class Int8Backend(OpenVinoBackend):
@@ -289,7 +343,12 @@ class Int8Backend(OpenVinoBackend):
             "NUM_STREAMS": 1,
         }
         with openvino_signal_stack_kept():
-            self.compiled = ov.Core().compile_model(str(xml), "CPU", config)
+            core = ov.Core()
+            graph = core.read_model(str(xml))
+            quantizer = _input_quantizer(graph)
+            if quantizer is not None:  # the ring keeps each frame's planes quantized
+                self.planes = PlaneRing(self.model.module, self.image_size, quantizer)
+            self.compiled = core.compile_model(graph, "CPU", config)
         self.request = self.compiled.create_infer_request()
         self.config = config
         self.quantized_path = xml

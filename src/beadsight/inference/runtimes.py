@@ -242,7 +242,9 @@ class _ModelFileBackend(Backend):
     def _run(self, images: np.ndarray) -> np.ndarray:
         if self.planes is None:
             return self._infer(images)
-        return self._infer(ring_inputs(self.model.module, images))
+        planes = ring_inputs(self.model.module, images)
+        quantizer = self.planes.quantizer
+        return self._infer(planes if quantizer is None else quantizer(planes))
 
     def run_incremental(
         self, window: np.ndarray, new_frames: int, rest: np.ndarray | None = None
