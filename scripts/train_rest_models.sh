@@ -26,7 +26,9 @@
 #               model of the set's first run; base_model.md has that run's figures)
 # Every exact command is echoed into OUT/commands.txt. The last round's folders OUT/NAME_rN
 # continue with `beadsight train --out RUN --resume --budget-min M`. SEED_OFFSET=N moves the
-# simulation seeds (2600+k, 2700+k) by N, for presses no earlier run trained on. With RESULTS=DIR, each
+# simulation seeds (2600+k, 2700+k) by N, for presses no earlier run trained on; BASE_LR
+# sets the base set's learning rate (5e-5: at 2e-4 a CPU round of base_model.pt traded
+# its reference presses' force error, 13.6 -> 17.0 %, for the held presses' figures). With RESULTS=DIR, each
 # round's checkpoints are also copied there as soon as the round ends: NAME.tar holds best.pt
 # and final.pt (the last step's weights, without the optimizer state: continue it with
 # --init), beside logs.tgz.
@@ -60,7 +62,7 @@ case $set_name in
     "norm base - 1e-3 --rest-input --rest-norm --width 16 --frames 4 --frame-stride 2 --color-jitter 1"
     "norm_nj base - 1e-3 --rest-input --rest-norm --width 16 --frames 4 --frame-stride 2"
     "norm_wip base $base_init 5e-4 --rest-norm --color-jitter 1") ;;
-  base) models=("base base $base_init 2e-4 --color-jitter 1") ;;
+  base) models=("base base $base_init ${BASE_LR:-5e-5} --color-jitter 1") ;;
   *) echo "set must be rest, looks or base, got $set_name" >&2; exit 2 ;;
 esac
 names=(); for m in "${models[@]}"; do names+=("${m%% *}"); done
