@@ -30,8 +30,8 @@ presses; before the further training too) but not the shipped model (CoP +6 %).
 change from the rest image, at about two pixel levels a step), 1.15x :data:`FAST` at the
 reference size with the same metric changes there, a 30 s held press read as fp32
 reads it; its graph takes the planes as uint8, quantized once per frame by the ring
-(:func:`_take_uint8_planes`). So the gated runtime tries :data:`RECIPES` fastest first and runs the first
-that passes.
+(:func:`_take_uint8_planes`). So the gated runtime tries :data:`RECIPES` fastest first
+and runs the first that passes.
 
 Whether the result may be used is decided on the paper's metrics, not pixel by pixel:
 :func:`beadsight.inference.metric_parity.metric_parity` (the ``int8`` runtime and auto
