@@ -27,14 +27,15 @@
 # Every exact command is echoed into OUT/commands.txt. The last round's folders OUT/NAME_rN
 # continue with `beadsight train --out RUN --resume --budget-min M`. SEED_OFFSET=N moves the
 # simulation seeds (2600+k, 2700+k) by N, for presses no earlier run trained on; BASE_LR
-# sets the base set's learning rate (5e-5: at 2e-4 a CPU round of base_model.pt traded
-# its reference presses' force error, 13.6 -> 17.0 %, for the held presses' figures). With RESULTS=DIR, each
+# sets the base set's learning rate (5e-5: at 2e-4 a CPU round of base_model.pt traded its
+# reference presses' force error, 13.6 -> 17.0 %, for the held presses'). With RESULTS=DIR, each
 # round's checkpoints are also copied there as soon as the round ends: NAME.tar holds best.pt
 # and final.pt (the last step's weights, without the optimizer state: continue it with
 # --init), beside logs.tgz.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 size=${1:?tiny, cpu or full}
+case $size in tiny | cpu | full) ;; *) echo "size must be tiny, cpu or full, got $size" >&2; exit 2 ;; esac
 out=${2:?output folder}
 deadline_s=${3:-480}
 set_name=${4:-rest}
