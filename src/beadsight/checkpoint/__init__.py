@@ -64,11 +64,23 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return model_from(meta, state, path, map_location)
 
 
+def _averaged_from(average: Any) -> list[str] | None:
+    """``path x weight`` of each checkpoint a `beadsight average` checkpoint is the mean of."""
+    if not isinstance(average, list):
+        return None
+    return [
+        f"{e.get('path')} x {e.get('weight'):.3f}"
+        for e in average
+        if isinstance(e, dict) and isinstance(e.get("weight"), int | float)
+    ]
+
+
 def checkpoint_summary(path: str | Path) -> dict[str, Any]:
     """What a checkpoint is and how it was made: architecture, input, output, training."""
     model = load_checkpoint(path)
     meta, training = model.meta, model.meta.training
     init = meta.provenance.get("init")
+    average = meta.provenance.get("average")
     return {
         "path": str(path),
         "format": "reference" if meta.provenance.get("source") == "reference" else "beadsight",
@@ -79,6 +91,7 @@ def checkpoint_summary(path: str | Path) -> dict[str, Any]:
         "output_scale_kpa": meta.output_scale_kpa,
         "dataset": meta.provenance.get("dataset") or meta.provenance.get("dataset_path"),
         "initialised_from": init.get("path") if isinstance(init, dict) else None,
+        "averaged_from": _averaged_from(average),
         "step": training.get("step"),
         "epoch": training.get("epoch", meta.provenance.get("epoch")),
         "best_val": training.get("best_val"),

@@ -1,4 +1,5 @@
-"""The training command: ``beadsight train --data D --out RUN [...]``."""
+"""The training commands: ``beadsight train --data D --out RUN [...]`` and
+``beadsight average A.pt B.pt --out C.pt``."""
 
 from __future__ import annotations
 
@@ -95,6 +96,7 @@ TRAIN_FLAGS = (
 
 def register(commands) -> None:
     commands.add("train", _train, _arguments)
+    commands.add("average", _average, _average_arguments)
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
@@ -157,4 +159,38 @@ def _train(args: argparse.Namespace) -> int:
     print(f"run folder: {run}")
     print(f"  best checkpoint: {run / 'best.pt'}")
     print(f"  last checkpoint: {run / 'last.pt'}")
+    return 0
+
+
+def _average_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoints of one model")
+    p.add_argument("--out", required=True, help="checkpoint to write")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    p.add_argument(
+        "--weights",
+        type=float,
+        nargs="+",
+        default=None,
+        metavar="W",
+        help="relative weight of each checkpoint (default: equal)",
+    )
+
+
+def _average(args: argparse.Namespace) -> int:
+    """Average the weights of checkpoints of one model (a model soup).
+
+    The checkpoints must share the network, geometry and normalisation (runs that continue
+    one another, or start from one checkpoint); the average often reads new presses better
+    than each of them, at no cost at run time. Score it with `beadsight evaluate` before
+    using it. The output's provenance lists each checkpoint and its weight.
+    """
+    from beadsight.checkpoint import save_checkpoint
+    from beadsight.files import refuse_existing
+    from beadsight.train.average import average_checkpoints
+
+    refuse_existing(args.out, args.overwrite)
+    model = average_checkpoints(args.checkpoints, args.weights)
+    path = save_checkpoint(args.out, model)
+    shares = ", ".join(f"{e['path']} x {e['weight']:.3f}" for e in model.meta.provenance["average"])
+    print(f"wrote {path}: the mean of {shares}")
     return 0
