@@ -69,8 +69,9 @@ def test_checkpoints_of_different_models_are_refused_by_name(tmp_path):
     ("weights", "message"),
     [
         ([1.0], "1 weights for 2 checkpoints"),
-        ([1.0, 0.0], "must be > 0"),
-        ([1.0, float("nan")], "> 0"),
+        ([1.0, 0.0], "must be finite and > 0"),
+        ([1.0, float("nan")], "finite"),
+        ([1.0, float("inf")], "finite"),
     ],
 )
 def test_bad_weights_are_refused(tmp_path, weights, message):

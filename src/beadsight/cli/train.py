@@ -180,7 +180,7 @@ def _average(args: argparse.Namespace) -> int:
     """Average the weights of checkpoints of one model (a model soup).
 
     The checkpoints must share the network, geometry and normalisation (runs that continue
-    one another, or start from one checkpoint); the average often reads new presses better
+    one another, or start from one checkpoint); the average can read new presses better
     than each of them, at no cost at run time. Score it with `beadsight evaluate` before
     using it. The output's provenance lists each checkpoint and its weight.
     """

@@ -1,14 +1,15 @@
 """Weight averaging of checkpoints of one model (a "model soup").
 
 Two runs of one model that share their start (a fine-tune and the checkpoint it began
-from, say) can be averaged weight by weight; the average often reads new presses better
-than either, at no cost when it runs. Only checkpoints of the same network, geometry and
+from, say) can be averaged weight by weight; the average can read new presses better than
+either (the shipped sim model is such an average), at no cost when it runs. Only checkpoints of the same network, geometry and
 normalisation are averaged: anything else is refused by name.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -36,8 +37,8 @@ def average_checkpoints(
         raise ConfigError(
             f"average: {len(weights)} weights for {len(paths)} checkpoints; give one per checkpoint"
         )
-    if not all(w > 0 for w in weights):  # also refuses NaN
-        raise ConfigError(f"average: weights must be > 0, got {weights}")
+    if not all(math.isfinite(w) and w > 0 for w in weights):
+        raise ConfigError(f"average: weights must be finite and > 0, got {weights}")
     total = sum(weights)
     weights = [w / total for w in weights]
     models = [load_checkpoint(p) for p in paths]
