@@ -85,3 +85,17 @@ def test_one_checkpoint_is_not_an_average(tmp_path):
     a, _ = _saved(tmp_path, "a.pt")
     with pytest.raises(ConfigError, match="at least two checkpoints, got 1"):
         average_checkpoints([a])
+
+
+def test_info_reads_a_forged_average_record_as_data(tmp_path):
+    model = tiny_model()
+    junk = [
+        {"path": "a.pt", "weight": "1; rm -rf /"},
+        "not a record",
+        {"path": "b.pt", "weight": 0.5},
+    ]
+    model.meta = dataclasses.replace(model.meta, provenance={"average": junk})
+    path = save_checkpoint(tmp_path / "forged.pt", model)
+    info = run_beadsight("info", path)
+    assert info.returncode == 0, info.stderr
+    assert "b.pt x 0.500" in info.stdout and "rm -rf" not in info.stdout

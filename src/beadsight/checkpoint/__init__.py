@@ -33,6 +33,7 @@ __all__ = [
     "PressureModel",
     "UnsafeCheckpointError",
     "atomic_torch_save",
+    "averaged_from",
     "checkpoint_summary",
     "load_checkpoint",
     "looks_like_checkpoint",
@@ -64,8 +65,10 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return model_from(meta, state, path, map_location)
 
 
-def _averaged_from(average: Any) -> list[str] | None:
-    """``path x weight`` of each checkpoint a `beadsight average` checkpoint is the mean of."""
+def averaged_from(provenance: dict[str, Any]) -> list[str] | None:
+    """``path x weight`` of each checkpoint a `beadsight average` checkpoint is the mean of
+    (None for any other checkpoint), read from its provenance."""
+    average = provenance.get("average")
     if not isinstance(average, list):
         return None
     return [
@@ -80,7 +83,6 @@ def checkpoint_summary(path: str | Path) -> dict[str, Any]:
     model = load_checkpoint(path)
     meta, training = model.meta, model.meta.training
     init = meta.provenance.get("init")
-    average = meta.provenance.get("average")
     return {
         "path": str(path),
         "format": "reference" if meta.provenance.get("source") == "reference" else "beadsight",
@@ -91,7 +93,7 @@ def checkpoint_summary(path: str | Path) -> dict[str, Any]:
         "output_scale_kpa": meta.output_scale_kpa,
         "dataset": meta.provenance.get("dataset") or meta.provenance.get("dataset_path"),
         "initialised_from": init.get("path") if isinstance(init, dict) else None,
-        "averaged_from": _averaged_from(average),
+        "averaged_from": averaged_from(meta.provenance),
         "step": training.get("step"),
         "epoch": training.get("epoch", meta.provenance.get("epoch")),
         "best_val": training.get("best_val"),

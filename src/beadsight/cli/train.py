@@ -184,13 +184,12 @@ def _average(args: argparse.Namespace) -> int:
     than each of them, at no cost at run time. Score it with `beadsight evaluate` before
     using it. The output's provenance lists each checkpoint and its weight.
     """
-    from beadsight.checkpoint import save_checkpoint
+    from beadsight.checkpoint import averaged_from, save_checkpoint
     from beadsight.files import refuse_existing
     from beadsight.train.average import average_checkpoints
 
     refuse_existing(args.out, args.overwrite)
     model = average_checkpoints(args.checkpoints, args.weights)
     path = save_checkpoint(args.out, model)
-    shares = ", ".join(f"{e['path']} x {e['weight']:.3f}" for e in model.meta.provenance["average"])
-    print(f"wrote {path}: the mean of {shares}")
+    print(f"wrote {path}: the mean of {', '.join(averaged_from(model.meta.provenance))}")
     return 0

@@ -2,8 +2,9 @@
 
 Two runs of one model that share their start (a fine-tune and the checkpoint it began
 from, say) can be averaged weight by weight; the average can read new presses better than
-either (the shipped sim model is such an average), at no cost when it runs. Only checkpoints of the same network, geometry and
-normalisation are averaged: anything else is refused by name.
+either (the shipped sim model is such an average), at no cost when it runs. Only
+checkpoints of the same network, geometry and normalisation are averaged: anything else
+is refused by name.
 """
 
 from __future__ import annotations
