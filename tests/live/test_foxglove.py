@@ -189,15 +189,20 @@ def test_health_reaches_the_client_and_the_app_status(tmp_path):
     sensor.open()
     server = FoxgloveServer(sensor.geometry, port=0, queue_size=64)
 
-    def ended(got) -> bool:  # statuses travel apart from messages: wait for both
+    readings = len(frames) - sensor.model.span + 1
+
+    def ended(got) -> bool:
+        # statuses travel apart from messages, and health apart from readings (readings
+        # are paced per client, health is sent at once): wait for all three
         reports = got.get(f"{NS}/health", [])
         recalibrate = any(op.get("level") == 2 for op in client.ops)
-        return recalibrate and any(m["sensor_state"] == "ended" for _, m in reports)
+        done = any(m["sensor_state"] == "ended" for _, m in reports)
+        return recalibrate and done and len(got.get(f"{NS}/reading", [])) >= readings
 
     with foxglove_client(server.url) as client:
         client.subscribe_all()
         wait_until(lambda: all(server.subscribers().values()), 10, "subscriptions")
-        sensor.add_listener(HealthTagger(server, total=len(frames) - sensor.model.span + 1))
+        sensor.add_listener(HealthTagger(server, total=readings))
         sensor.start()
         got = client.receive(ended, timeout_s=30)
     sensor.stop()
