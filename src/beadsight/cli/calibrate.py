@@ -121,7 +121,8 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 
 def _print_candidates(metrics: dict) -> None:
-    """The test figures of every scored candidate beside the paper's."""
+    """The test figures of every scored candidate beside the paper's; each fine-tuning's
+    steps, and why a candidate was not scored."""
     cands = {n: c for n, c in metrics["candidates"].items() if c["test"]}
     print(f"{'test presses':22s} " + " ".join(f"{n:>10s}" for n in cands) + f" {'paper':>8s}")
     for key, label in (
@@ -137,6 +138,11 @@ def _print_candidates(metrics: dict) -> None:
     for name, c in metrics["candidates"].items():
         if c["status"] != "scored" or not c["test"]:
             print(f"{name}: " + "; ".join([c["status"], *c["notes"]]))
+        elif c["steps"]:  # a fine-tuning: its training, and the leader's continuation
+            print(
+                f"{name}: "
+                + "; ".join([f"{c['steps']} steps in {c['seconds']:.0f} s", *c["notes"]])
+            )
 
 
 def _num(value) -> str:
