@@ -10,11 +10,12 @@ fixed test presses of that pouch (the last ``--test-presses`` of its file, never
 and never used to choose):
 
 * ``calibrate``: ``beadsight calibrate --presses N --budget-min B`` (its own split of the
-  N presses: ~70 % train, ~10 % early stopping, ~20 % its internal test; the budget covers
+  N presses: ~70 % train, ~20 % early stopping, ~10 % its internal test; the budget covers
   its evaluations too). N = 0 is ``calibrate --presses 0`` (rest frames only: the
   pre-contact frames of the pouch's presses); its model does not depend on the budget
   (which sets only how many frames calibrate scores it on itself), so it runs with
-  :data:`ZERO_PRESS_BUDGET_MIN`;
+  :data:`ZERO_PRESS_BUDGET_MIN`. The fine-tunings it scored and did not keep are scored on
+  the fixed presses too (``not_kept`` in the record: what its choice cost);
 * ``scratch`` (N > 0): calibrate's own ``scratch`` candidate (a width-8 model, lr 1e-3
   cosine, no dropout, batch 16, the base model's frames, stride, rest input and image size:
   the command of issue 24) trained with ``beadsight train`` on the same N presses with the
@@ -49,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from beadsight.calibrate.candidates import candidate_config
-from beadsight.calibrate.config import MIN_PRESSES, CalibrateConfig
+from beadsight.calibrate.config import FINE_TUNED, MIN_PRESSES, TRAIN_FOLDER, CalibrateConfig
 from beadsight.calibrate.run import base_checkpoint, calibrate, check_data
 from beadsight.calibrate.tuning import VAL_MAX_FRAMES, with_val_stride
 from beadsight.checkpoint import PressureModel, load_checkpoint
@@ -62,6 +63,7 @@ from beadsight.inference.machine import cpu_summary
 from beadsight.metrics import PAPER_METRIC_KEYS
 from beadsight.report.paper import PAPER_METRICS
 from beadsight.sim.looks import FAMILY_NAMES
+from beadsight.train.run import BEST_CHECKPOINT
 from beadsight.train.trainer import train
 
 METRICS = PAPER_METRIC_KEYS  # MAE kPa, force error %, CoP mm, IoU, worst region kPa
@@ -216,6 +218,12 @@ def calibrated(data: Path, folder: Path, n: int, base_path: Path, test: np.ndarr
     )
     seconds = time.monotonic() - t0
     chosen = m["chosen"]
+    # the fine-tunings it did not keep, on the same fixed presses: what the choice cost
+    not_kept = {
+        name: scored(folder / TRAIN_FOLDER / name / BEST_CHECKPOINT, data, test, args)
+        for name, c in m["candidates"].items()
+        if name in FINE_TUNED and name != chosen and c["status"] == "scored"
+    }
     return {
         **scored(folder / "model.pt", data, test, args),
         "chosen": chosen,
@@ -223,6 +231,7 @@ def calibrated(data: Path, folder: Path, n: int, base_path: Path, test: np.ndarr
         "fine_tuned": m["calibration"]["fine_tuned"],
         "budget_min": budget,
         "seconds": round(seconds, 1),
+        "not_kept": not_kept,
     }
 
 
