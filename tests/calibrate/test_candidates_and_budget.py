@@ -118,8 +118,8 @@ def test_every_candidate_is_listed_the_fine_tunings_train_and_the_best_is_kept(
             load_checkpoint(out / "train" / name / "best.pt").meta.training["step"]
             == c["best_step"]
         )
-    assert cands["decoder"]["budget_s"] > 0 and cands["all"]["budget_s"] > 0
     scored = {n: c for n, c in cands.items() if c["status"] == "scored"}
+    assert set(scored) == {"zero-shot", "zero-press", "decoder", "all"}
     best = min(c["val"]["mae_kpa"] for c in scored.values())
     assert cands[metrics["chosen"]]["val"]["mae_kpa"] == best
     # metrics.json's top-level figures are the kept candidate's on the test presses

@@ -138,7 +138,7 @@ def _print_candidates(metrics: dict) -> None:
     for name, c in metrics["candidates"].items():
         if c["status"] != "scored" or not c["test"]:
             print(f"{name}: " + "; ".join([c["status"], *c["notes"]]))
-        elif c["steps"]:  # a fine-tuning: its training, and the leader's continuation
+        elif c["steps"]:  # a fine-tuning: how long it trained
             print(
                 f"{name}: "
                 + "; ".join([f"{c['steps']} steps in {c['seconds']:.0f} s", *c["notes"]])
