@@ -17,11 +17,12 @@ from beadsight import load_checkpoint
 from beadsight.calibrate import tuning
 from beadsight.calibrate.candidates import Candidate
 from beadsight.calibrate.config import CANDIDATES, CalibrateConfig
-from beadsight.calibrate.run import calibrate, choose
+from beadsight.calibrate.run import calibrate, choose, used_split
 from beadsight.cli import main
 from beadsight.cli.calibrate import _print_candidates
 from beadsight.config import ConfigError
 from beadsight.data.rest import RestReference, load_rest_file
+from beadsight.data.splits import split_presses
 from beadsight.evaluation.config import EvaluateConfig
 from beadsight.evaluation.evaluate import evaluate
 
@@ -129,6 +130,17 @@ def test_every_candidate_is_listed_the_fine_tunings_train_and_the_best_is_kept(
     printed = capsys.readouterr().out
     for name in ("decoder", "all"):
         assert f"{name}: {cands[name]['steps']} steps in " in printed
+
+
+def test_of_30_presses_6_choose_and_3_test_with_the_training_presses_of_before():
+    """docs/calibration.md, "Choosing on 6 presses": the 21 training presses of the 70/10/20
+    split, 6 early-stopping presses (its 3 and the next 3 of the seeded order), 3 test."""
+    split = used_split(CalibrateConfig(data="d.h5", out="o", presses=30, skip=2), 40)
+    assert [len(split[k]) for k in ("train", "val", "test")] == [21, 6, 3]
+    before = split_presses(30, (0.7, 0.1, 0.2), 0)
+    assert (split["train"] == before["train"] + 2).all()  # after the 2 skipped presses
+    assert set(before["val"] + 2) < set(split["val"])
+    assert set(split["test"]) < set(before["test"] + 2)
 
 
 def test_choose_takes_the_lowest_early_stopping_mae_among_the_listed_candidates(tmp_path):
